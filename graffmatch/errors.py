@@ -1,0 +1,23 @@
+"""Exceptions raised by graffmatch.
+
+They all derive from :class:`GraffMatchError` so that callers (and the CLI) can catch the
+library's own failures in one place and show them as one clear line.
+"""
+
+from __future__ import annotations
+
+
+class GraffMatchError(Exception):
+    """Base class of every error graffmatch raises on purpose."""
+
+
+class InvalidInputError(GraffMatchError, ValueError):
+    """Input arrays have NaN/Inf, wrong shapes, non-orthonormal bases or are empty."""
+
+
+class DegenerateGeometryError(GraffMatchError):
+    """The geometry does not determine the requested quantity (e.g. only parallel planes)."""
+
+
+class MalformedFileError(GraffMatchError, OSError):
+    """A file could not be parsed; the message names the file."""
