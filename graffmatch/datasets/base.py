@@ -1,0 +1,311 @@
+"""The ``Dataset`` protocol shared by every loader, and the small parsers they share.
+
+Every loader serves :class:`Scan` objects lazily (points are read from disk on ``ds[i]``) and
+exposes the ground-truth poses of the LiDAR in the world (``T_world_lidar``), already converted
+from whatever frame the dataset publishes (camera-0 for KITTI, IMU for KITTI-360, body for NCLT).
+That way the loop-closure builder and every metric only ever see LiDAR-frame poses.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graffmatch.errors import InvalidInputError, MalformedFileError
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True, repr=False)
+class Scan:
+    """One LiDAR scan with its ground-truth pose.
+
+    points : (N, 4) float32, x y z intensity in the LiDAR frame [m].
+    labels : (N,) uint32 SemanticKITTI labels (class in the low 16 bits) or None.
+    T_world_lidar : (4, 4) ground-truth pose of the LiDAR in the world.
+    timestamp : seconds (since the start of the sequence when the dataset gives times,
+        otherwise the frame index).
+    index : position of the scan in its dataset (0..len-1).
+    path : file the points were read from.
+    """
+
+    points: NDArray[np.float32]
+    labels: NDArray[np.uint32] | None
+    T_world_lidar: Array
+    timestamp: float
+    index: int
+    path: Path
+
+    @property
+    def xyz(self) -> NDArray[np.float32]:
+        return self.points[:, :3]
+
+    def __repr__(self) -> str:
+        return (
+            f"Scan(index={self.index}, points={len(self.points)}, "
+            f"labels={'yes' if self.labels is not None else 'no'}, t={self.timestamp:.3f}, "
+            f"position={np.round(self.T_world_lidar[:3, 3], 2).tolist()}, path='{self.path.name}')"
+        )
+
+
+@runtime_checkable
+class Dataset(Protocol):
+    """What the loop-closure builder and the evaluation need from a dataset."""
+
+    name: str
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, i: int) -> Scan: ...
+
+    @property
+    def poses(self) -> Array:
+        """(n, 4, 4) ground-truth ``T_world_lidar`` of every scan."""
+        ...
+
+    def scan_path(self, i: int) -> Path: ...
+
+
+class ScanSequence:
+    """Common machinery of the loaders: an ordered list of scan files with poses and times.
+
+    Subclasses fill ``_paths``, ``_poses`` and ``_times`` in their constructor and implement
+    :meth:`_read_points` (and optionally :meth:`_read_labels`); everything else is shared.
+    Only the listing and the poses are read eagerly; points are read on access.
+    """
+
+    name: str
+    _paths: list[Path]
+    _poses: Array
+    _times: Array
+
+    def _finish(self) -> None:
+        """Validate what a subclass constructor assembled (called at its end)."""
+        n = len(self._paths)
+        if n == 0:
+            raise InvalidInputError(f"{self.name}: no scans found")
+        if self._poses.shape != (n, 4, 4):
+            raise MalformedFileError(
+                f"{self.name}: {n} scans but poses of shape {self._poses.shape}"
+            )
+        if self._times.shape != (n,):
+            raise MalformedFileError(f"{self.name}: {n} scans but {self._times.shape[0]} times")
+        self._poses.setflags(write=False)
+
+    # ---- protocol ------------------------------------------------------------------
+    def __len__(self) -> int:
+        return len(self._paths)
+
+    def _check_index(self, i: int) -> int:
+        n = len(self._paths)
+        if not isinstance(i, (int, np.integer)):
+            raise TypeError(f"scan index must be an int, got {type(i).__name__}")
+        i = int(i)
+        if i < -n or i >= n:
+            raise IndexError(f"{self.name}: scan index {i} out of range for {n} scans")
+        return i % n
+
+    def __getitem__(self, i: int) -> Scan:
+        i = self._check_index(i)
+        path = self._paths[i]
+        points = self._read_points(path)
+        labels = self._read_labels(i)
+        if labels is not None and labels.shape[0] != points.shape[0]:
+            raise MalformedFileError(
+                f"{self.name}: scan {path.name} has {points.shape[0]} points "
+                f"but {labels.shape[0]} labels"
+            )
+        return Scan(points, labels, self._poses[i].copy(), float(self._times[i]), i, path)
+
+    def __iter__(self) -> Iterator[Scan]:
+        return (self[i] for i in range(len(self)))
+
+    @property
+    def poses(self) -> Array:
+        return self._poses
+
+    @property
+    def timestamps(self) -> Array:
+        """(n,) seconds (or frame numbers when the dataset has no times)."""
+        return self._times
+
+    def scan_path(self, i: int) -> Path:
+        return self._paths[self._check_index(i)]
+
+    def label_path(self, i: int) -> Path | None:
+        """Path of the label file of scan i, or None when the dataset has none."""
+        return None
+
+    def _read_points(self, path: Path) -> NDArray[np.float32]:
+        return read_kitti_bin(path)
+
+    def _read_labels(self, i: int) -> NDArray[np.uint32] | None:
+        p = self.label_path(i)
+        return None if p is None else read_kitti_labels(p)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r}, scans={len(self)})"
+
+
+# ---- readers of the files the loaders share ---------------------------------------------
+def read_kitti_bin(path: Path) -> NDArray[np.float32]:
+    """KITTI .bin scan -> (N, 4) float32 via :mod:`graffmatch.lidar.io` when present."""
+    try:
+        from graffmatch.lidar.io import read_points
+    except ImportError:  # the lidar layer is written in parallel; keep a fallback
+        return _read_bin_fallback(path)
+    pts = np.asarray(read_points(path), dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] not in (3, 4):
+        raise MalformedFileError(f"{path}: expected (N, 4) points, got {pts.shape}")
+    if pts.shape[1] == 3:
+        pts = np.concatenate([pts, np.zeros((len(pts), 1), np.float32)], axis=1)
+    return pts
+
+
+def read_kitti_labels(path: Path) -> NDArray[np.uint32]:
+    """SemanticKITTI .label file -> (N,) uint32 via :mod:`graffmatch.lidar.io` when present."""
+    try:
+        from graffmatch.lidar.io import read_labels
+    except ImportError:
+        return _read_label_fallback(path)
+    return np.asarray(read_labels(path), dtype=np.uint32)
+
+
+def _read_bin_fallback(path: Path) -> NDArray[np.float32]:
+    path = Path(path)
+    if not path.is_file():
+        raise InvalidInputError(f"scan file not found: {path}")
+    raw = np.fromfile(path, dtype=np.float32)
+    if raw.size % 4:
+        raise MalformedFileError(f"{path}: size is not a multiple of 16 bytes (x y z i float32)")
+    return raw.reshape(-1, 4)
+
+
+def _read_label_fallback(path: Path) -> NDArray[np.uint32]:
+    path = Path(path)
+    if not path.is_file():
+        raise InvalidInputError(f"label file not found: {path}")
+    raw = np.fromfile(path, dtype=np.uint32)
+    return raw
+
+
+def orthonormalize(T: Array) -> Array:
+    """Project the rotation blocks of (n, 4, 4) poses onto SO(3).
+
+    Pose files are printed with 6-7 digits, so their rotations are orthonormal only to ~1e-6;
+    downstream code validates transforms strictly, so we snap them once on load.
+    """
+    T = np.array(T, dtype=float)
+    U, _, Vt = np.linalg.svd(T[:, :3, :3])
+    d = np.sign(np.linalg.det(U @ Vt))
+    U[:, :, 2] *= d[:, None]
+    T[:, :3, :3] = U @ Vt
+    T[:, 3] = [0.0, 0.0, 0.0, 1.0]
+    return T
+
+
+def rows_to_poses(rows: Array, what: str) -> Array:
+    """(n, 12) rows of 3x4 matrices -> (n, 4, 4) poses (validated, snapped to SE(3))."""
+    rows = np.asarray(rows, dtype=float).reshape(-1, 12)
+    if not np.all(np.isfinite(rows)):
+        raise MalformedFileError(f"{what}: pose contains NaN or Inf")
+    T = np.zeros((len(rows), 4, 4))
+    T[:, :3, :] = rows.reshape(-1, 3, 4)
+    T[:, 3, 3] = 1.0
+    R = T[:, :3, :3]
+    err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2)) if len(T) else []
+    bad = np.flatnonzero(np.asarray(err) > 1e-3)
+    if bad.size:
+        raise MalformedFileError(f"{what}: pose {int(bad[0])} has a non-orthonormal rotation")
+    return orthonormalize(T)
+
+
+def read_pose_file(path: Path, n_columns: int = 12) -> Array:
+    """Whitespace-separated pose file, one row of ``n_columns`` numbers per line.
+
+    Returns the raw (n, n_columns) array; blank lines and ``#`` comments are skipped.
+    Every malformed line is reported with its number, not as a numpy error.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InvalidInputError(f"pose file not found: {path}")
+    rows: list[list[float]] = []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        parts = line.replace(",", " ").split()
+        if len(parts) != n_columns:
+            raise MalformedFileError(
+                f"{path}:{lineno}: expected {n_columns} numbers, got {len(parts)}"
+            )
+        try:
+            rows.append([float(v) for v in parts])
+        except ValueError as exc:
+            raise MalformedFileError(f"{path}:{lineno}: not a number ({exc})") from exc
+    if not rows:
+        raise MalformedFileError(f"{path}: no poses")
+    return np.asarray(rows, dtype=float)
+
+
+def read_kitti_calib(path: Path) -> dict[str, Array]:
+    """KITTI-style ``key: v1 v2 ...`` calibration file -> {key: values}."""
+    path = Path(path)
+    if not path.is_file():
+        raise InvalidInputError(f"calibration file not found: {path}")
+    out: dict[str, Array] = {}
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        if not line.strip():
+            continue
+        if ":" not in line:
+            raise MalformedFileError(f"{path}:{lineno}: expected 'key: values'")
+        key, vals = line.split(":", 1)
+        try:
+            out[key.strip()] = np.array([float(v) for v in vals.split()], dtype=float)
+        except ValueError as exc:
+            raise MalformedFileError(f"{path}:{lineno}: not a number ({exc})") from exc
+    return out
+
+
+def calib_transform(calib: dict[str, Array], key: str, path: Path) -> Array | None:
+    """A 3x4 entry of a calibration dict as a 4x4 transform, or None when absent."""
+    if key not in calib:
+        return None
+    v = calib[key]
+    if v.size != 12:
+        raise MalformedFileError(f"{path}: {key} must have 12 values, got {v.size}")
+    return rows_to_poses(v[None], f"{path} ({key})")[0]
+
+
+def camera_to_lidar_poses(P_world_cam: Array, T_cam_lidar: Array) -> Array:
+    """KITTI convention: LiDAR pose = inv(Tr) @ P @ Tr with Tr = T_cam0_lidar.
+
+    The world frame is then the LiDAR frame of the first scan (like the camera poses are
+    relative to the first camera), so scan 0 of KITTI has T_world_lidar = I.
+    """
+    Tr = np.asarray(T_cam_lidar, dtype=float)
+    Tr_inv = np.linalg.inv(Tr)
+    return orthonormalize(Tr_inv @ P_world_cam @ Tr)
+
+
+def numbered_files(folder: Path, suffix: str) -> list[tuple[int, Path]]:
+    """Files ``<number><suffix>`` of a folder sorted by number (other files are ignored)."""
+    out = []
+    for p in folder.iterdir():
+        if p.suffix == suffix and p.stem.isdigit():
+            out.append((int(p.stem), p))
+    out.sort()
+    return out
+
+
+def read_times(path: Path, n: int) -> Array:
+    """One time per line (seconds); the count must match the scans."""
+    t = read_pose_file(path, n_columns=1)[:, 0]
+    if t.shape[0] != n:
+        raise MalformedFileError(f"{path}: {t.shape[0]} times for {n} scans")
+    return t

@@ -1,0 +1,109 @@
+"""Generic KITTI-layout folder: the data in ``../shared/data`` and the simulator's output.
+
+Layout::
+
+    <root>/velodyne/NNNNNN.bin     float32 x y z intensity
+    <root>/labels/NNNNNN.label     optional SemanticKITTI labels (uint32)
+    <root>/poses.txt               one 3x4 pose per line, one line per scan (sorted by number)
+    <root>/calib.txt               optional; when it holds ``Tr`` the poses are camera-0 poses
+                                   (KITTI convention) and are converted to the LiDAR frame
+    <root>/times.txt               optional, seconds, one per scan
+
+Without ``Tr`` the poses are read as LiDAR-to-world directly (e.g. ``balm_courtyard``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from graffmatch.datasets.base import (
+    ScanSequence,
+    calib_transform,
+    camera_to_lidar_poses,
+    numbered_files,
+    read_kitti_calib,
+    read_pose_file,
+    read_times,
+    rows_to_poses,
+)
+from graffmatch.errors import InvalidInputError, MalformedFileError
+
+
+class KittiLayoutSequence(ScanSequence):
+    """A folder with ``velodyne/`` and optional ``labels/``; poses/calib/times given as paths."""
+
+    def __init__(
+        self,
+        scan_dir: Path,
+        pose_file: Path,
+        calib_file: Path | None,
+        times_file: Path | None,
+        label_dir: Path | None,
+        name: str,
+        require_tr: bool = False,
+    ) -> None:
+        self.name = name
+        if not scan_dir.is_dir():
+            raise InvalidInputError(f"{name}: scan folder not found: {scan_dir}")
+        files = numbered_files(scan_dir, ".bin")
+        if not files:
+            raise InvalidInputError(f"{name}: no NNNNNN.bin scans in {scan_dir}")
+        self._paths = [p for _, p in files]
+        self._frames = np.array([f for f, _ in files], dtype=np.int64)
+        n = len(self._paths)
+        rows = read_pose_file(pose_file, n_columns=12)
+        if rows.shape[0] != n:
+            raise MalformedFileError(
+                f"{name}: {pose_file} has {rows.shape[0]} poses for {n} scans in {scan_dir}"
+            )
+        poses = rows_to_poses(rows, str(pose_file))
+        self.T_cam_lidar: np.ndarray | None = None
+        if calib_file is not None and calib_file.is_file():
+            self.T_cam_lidar = calib_transform(read_kitti_calib(calib_file), "Tr", calib_file)
+        if require_tr and self.T_cam_lidar is None:
+            raise MalformedFileError(f"{name}: calibration {calib_file} has no 'Tr' entry")
+        self.poses_are_camera = self.T_cam_lidar is not None
+        if self.T_cam_lidar is not None:
+            poses = camera_to_lidar_poses(poses, self.T_cam_lidar)
+        self._poses = poses
+        if times_file is not None and times_file.is_file():
+            self._times = read_times(times_file, n)
+        else:
+            self._times = self._frames.astype(float)
+        self._label_dir = label_dir if label_dir is not None and label_dir.is_dir() else None
+        self._finish()
+
+    @property
+    def has_labels(self) -> bool:
+        return self._label_dir is not None
+
+    @property
+    def frame_numbers(self) -> np.ndarray:
+        """The NNNNNN numbers of the scan files, in dataset order."""
+        return self._frames
+
+    def label_path(self, i: int) -> Path | None:
+        if self._label_dir is None:
+            return None
+        p = self._label_dir / (self._paths[self._check_index(i)].stem + ".label")
+        return p if p.is_file() else None
+
+
+class KittiFolder(KittiLayoutSequence):
+    """Generic KITTI-layout folder (see the module docstring)."""
+
+    def __init__(self, root: str | Path, name: str | None = None) -> None:
+        root = Path(root)
+        if not root.is_dir():
+            raise InvalidInputError(f"dataset folder not found: {root}")
+        super().__init__(
+            scan_dir=root / "velodyne",
+            pose_file=root / "poses.txt",
+            calib_file=root / "calib.txt",
+            times_file=root / "times.txt",
+            label_dir=root / "labels",
+            name=name or root.name,
+        )
+        self.root = root
