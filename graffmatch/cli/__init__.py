@@ -1,0 +1,1 @@
+"""The ``graffmatch`` command line (typer + rich)."""
