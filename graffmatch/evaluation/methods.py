@@ -1,0 +1,433 @@
+"""One interface for every registration method of the evaluation, and their registry.
+
+Every method -- GraffMatch and its variants, the landmark baselines of the paper's Table I and
+the point-based methods of its Table II -- takes the same :class:`PairInput` and returns the same
+:class:`MethodOutput`, so that the experiment runner treats them alike and the metrics see
+identical inputs.
+
+Usage::
+
+    from graffmatch.evaluation.methods import get_method, list_methods, PairInput
+    method = get_method("GraffMatch")            # or get_method("CLIPPER-Rn", epsilon=4.0)
+    out = method.run(PairInput(source=src_landmarks, target=tgt_landmarks))
+    out.T_target_source, out.associations, out.timings["total"]
+
+``kind == "landmark"`` methods use ``PairInput.source/target`` (and, for BruteForceRMSE and
+GraffMatch+ICP, their support points); ``kind == "point"`` methods use the raw scans.
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graffmatch.errors import DegenerateGeometryError, InvalidInputError, MalformedFileError
+from graffmatch.geometry.landmarks import LandmarkSet
+
+MethodKind = Literal["landmark", "point"]
+
+
+def _load_scan_file(path: Path) -> NDArray[np.float32]:
+    """Read a raw scan: KITTI ``.bin`` (float32 x,y,z,i), ``.npy``, or PCD/PLY via Open3D."""
+    if not path.is_file():
+        raise MalformedFileError(f"{path}: scan file not found")
+    suffix = path.suffix.lower()
+    if suffix == ".bin":
+        raw = np.fromfile(path, dtype=np.float32)
+        if raw.size % 4:
+            raise MalformedFileError(f"{path}: size is not a multiple of 4 float32 values")
+        return raw.reshape(-1, 4)
+    if suffix == ".npy":
+        return np.asarray(np.load(path), dtype=np.float32)
+    if suffix in (".pcd", ".ply"):
+        import open3d as o3d
+
+        pcd = o3d.io.read_point_cloud(str(path))
+        return np.asarray(pcd.points, dtype=np.float32)
+    raise MalformedFileError(f"{path}: unsupported scan format {suffix!r}")
+
+
+def as_xyz(scan: Any, name: str) -> NDArray[np.float64]:
+    """Validate a raw scan (N, >=3) and return its (N, 3) float64 coordinates."""
+    P = np.asarray(scan)
+    if P.ndim != 2 or P.shape[1] < 3:
+        raise InvalidInputError(f"{name} must have shape (N, 3) or (N, 4), got {P.shape}")
+    P = P[:, :3].astype(np.float64)
+    finite = np.all(np.isfinite(P), axis=1)
+    P = P[finite]
+    if len(P) < 10:
+        raise InvalidInputError(f"{name} has only {len(P)} finite points")
+    return P
+
+
+@dataclass
+class PairInput:
+    """The two places of one pair, exactly as every method sees them.
+
+    ``source``/``target`` are the landmarks of each scan in its own sensor frame (with support
+    points when available). ``source_scan``/``target_scan`` are the raw (N, 4) or (N, 3) points,
+    or give ``*_scan_path`` to load them lazily.
+    """
+
+    source: LandmarkSet
+    target: LandmarkSet
+    source_scan: np.ndarray | None = None
+    target_scan: np.ndarray | None = None
+    source_scan_path: str | Path | None = None
+    target_scan_path: str | Path | None = None
+    pair_id: str = ""
+
+    def scans(self, method_name: str = "this method") -> tuple[np.ndarray, np.ndarray]:
+        """(source, target) raw scans, loading them from their paths if needed."""
+        if self.source_scan is None and self.source_scan_path is not None:
+            self.source_scan = _load_scan_file(Path(self.source_scan_path))
+        if self.target_scan is None and self.target_scan_path is not None:
+            self.target_scan = _load_scan_file(Path(self.target_scan_path))
+        if self.source_scan is None or self.target_scan is None:
+            raise InvalidInputError(
+                f"{method_name} is point-based and needs PairInput.source_scan and "
+                "target_scan (or *_scan_path); they are None"
+            )
+        return self.source_scan, self.target_scan
+
+
+@dataclass
+class MethodOutput:
+    """What a method returns for one pair.
+
+    ``T_target_source`` maps source-frame points into the target frame; ``None`` means the method
+    gave no estimate (counted as a failed registration). ``associations`` are (k, 2) indices
+    (source, target) into the landmark sets; empty for point-based methods. ``timings`` are
+    seconds per stage and always include ``"total"``.
+    """
+
+    T_target_source: np.ndarray | None
+    associations: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.intp))
+    timings: dict[str, float] = field(default_factory=dict)
+    valid: bool = False
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        a = np.asarray(self.associations)
+        self.associations = (
+            np.zeros((0, 2), np.intp) if a.size == 0 else a.astype(np.intp).reshape(-1, 2)
+        )
+        if self.T_target_source is not None:
+            self.T_target_source = np.asarray(self.T_target_source, dtype=float)
+
+    def __repr__(self) -> str:
+        t = self.timings.get("total", float("nan"))
+        return (
+            f"MethodOutput(valid={self.valid}, estimate={self.T_target_source is not None}, "
+            f"associations={len(self.associations)}, total={1e3 * t:.1f} ms)"
+        )
+
+
+@runtime_checkable
+class Method(Protocol):
+    """A registration method: ``run`` one pair, uniform output."""
+
+    name: str
+    kind: MethodKind
+
+    def run(self, pair: PairInput) -> MethodOutput: ...
+
+
+class Timer:
+    """Collects named stage timings; ``total`` is added by :meth:`finish`."""
+
+    def __init__(self) -> None:
+        self.timings: dict[str, float] = {}
+        self._t0 = time.perf_counter()
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t
+
+    def finish(self) -> dict[str, float]:
+        self.timings["total"] = time.perf_counter() - self._t0
+        return dict(self.timings)
+
+
+def register_associations(
+    source: LandmarkSet,
+    target: LandmarkSet,
+    associations: np.ndarray,
+    kappa_max: float = 1e3,
+    min_associations: int = 3,
+) -> tuple[np.ndarray | None, bool, dict[str, Any]]:
+    """Closed-form landmark registration shared by the landmark baselines.
+
+    Returns (T or None, valid, info). ``valid`` is False if there are too few associations or the
+    problem is ill-conditioned (kappa > kappa_max); T is still returned when it exists, as in the
+    paper (which registers whatever a method selected).
+    """
+    from graffmatch.registration.closed_form import register_landmarks
+
+    a = np.asarray(associations, dtype=np.intp).reshape(-1, 2)
+    if len(a) == 0:
+        return None, False, {"message": "no associations"}
+    try:
+        est = register_landmarks(source, target, a, kappa_max=kappa_max)
+    except DegenerateGeometryError as exc:
+        return None, False, {"message": f"degenerate: {exc}"}
+    kappa = float(getattr(est, "kappa", np.nan))
+    degenerate = bool(getattr(est, "degenerate", False))
+    valid = len(a) >= min_associations and not degenerate
+    return np.asarray(est.T_target_source, float), valid, {"kappa": kappa, "degenerate": degenerate}
+
+
+# ----------------------------------------------------------------------------------------------
+# GraffMatch and its variants
+# ----------------------------------------------------------------------------------------------
+def _support_points(ls: LandmarkSet, idx: np.ndarray, what: str) -> np.ndarray:
+    if ls.points is None or ls.point_offsets is None:
+        raise InvalidInputError(f"{what} landmarks carry no support points (needed for ICP)")
+    sub = ls[np.unique(idx)]
+    return np.asarray(sub.points, dtype=np.float64)
+
+
+class GraffMatchMethod:
+    """GraffMatch (``graffmatch.matcher.GraffMatcher``) behind the uniform interface.
+
+    Parameters are fields of ``GraffMatchConfig`` (paper defaults: rho=40, epsilon=0.2,
+    sigma=0.05); the registry's variants set ``variant="naive"`` or ``landmark_types``.
+    """
+
+    kind: MethodKind = "landmark"
+
+    def __init__(self, name: str = "GraffMatch", config: Any = None, **params: Any) -> None:
+        from graffmatch.matcher import GraffMatchConfig, GraffMatcher
+
+        if config is None:
+            if "landmark_types" in params:
+                params["landmark_types"] = list(params["landmark_types"])
+            config = GraffMatchConfig(**params)
+        elif params:
+            config = config.model_copy(update=params)
+        self.name = name
+        self.config = config
+        self.params = config.model_dump(mode="json")
+        self._matcher = GraffMatcher(config)
+
+    def _match(self, pair: PairInput) -> Any:
+        return self._matcher.match(pair.source, pair.target)
+
+    def run(self, pair: PairInput) -> MethodOutput:
+        timer = Timer()
+        with timer.stage("match"):
+            res = self._match(pair)
+        timings = timer.finish()
+        for k, v in dict(getattr(res, "timings", {}) or {}).items():
+            if k != "total":
+                timings[f"match.{k}"] = float(v)
+        T = getattr(res, "T_target_source", None)
+        return MethodOutput(
+            T_target_source=None if T is None else np.asarray(T, float),
+            associations=np.asarray(res.associations),
+            timings=timings,
+            valid=bool(res.valid),
+            info={
+                "score": float(getattr(res, "score", np.nan)),
+                "kappa": float(getattr(res, "kappa", np.nan)),
+                "n_putative": int(getattr(res, "n_putative", -1)),
+                "n_edges": int(getattr(res, "n_edges", -1)),
+                "message": str(getattr(res, "message", "")),
+            },
+        )
+
+
+class GraffMatchICP(GraffMatchMethod):
+    """GraffMatch, then ICP on only the support points of the matched landmarks (Table II).
+
+    ICP is ``graffmatch.registration.icp.refine_icp`` (Open3D) with
+    ``max_correspondence_distance`` [m] and ``max_iterations``; it is skipped (GraffMatch's
+    estimate is kept) when GraffMatch selected no association.
+    """
+
+    def __init__(
+        self,
+        name: str = "GraffMatch+ICP",
+        max_correspondence_distance: float = 1.0,
+        max_iterations: int = 30,
+        config: Any = None,
+        **params: Any,
+    ) -> None:
+        super().__init__(name=name, config=config, **params)
+        self.max_correspondence_distance = float(max_correspondence_distance)
+        self.max_iterations = int(max_iterations)
+        self.params = {
+            **self.params,
+            "icp_max_correspondence_distance": self.max_correspondence_distance,
+            "icp_max_iterations": self.max_iterations,
+        }
+
+    def run(self, pair: PairInput) -> MethodOutput:
+        from graffmatch.registration.icp import refine_icp
+
+        out = super().run(pair)
+        a = out.associations
+        if out.T_target_source is None or len(a) == 0:
+            out.info["icp"] = "skipped: no GraffMatch estimate"
+            return out
+        src = _support_points(pair.source, a[:, 0], "source")
+        tgt = _support_points(pair.target, a[:, 1], "target")
+        if len(src) < 3 or len(tgt) < 3:
+            out.info["icp"] = "skipped: matched landmarks have < 3 support points"
+            return out
+        t = time.perf_counter()
+        T, fitness, rmse = refine_icp(
+            src,
+            tgt,
+            out.T_target_source,
+            max_correspondence_distance=self.max_correspondence_distance,
+            max_iterations=self.max_iterations,
+        )
+        dt = time.perf_counter() - t
+        out.timings["icp"] = dt
+        out.timings["total"] += dt
+        out.T_target_source = np.asarray(T, float)
+        out.info.update(icp_fitness=float(fitness), icp_rmse=float(rmse), icp_points=len(src))
+        return out
+
+
+# ----------------------------------------------------------------------------------------------
+# registry
+# ----------------------------------------------------------------------------------------------
+MethodFactory = Callable[..., Method]
+
+
+@dataclass(frozen=True)
+class _Entry:
+    factory: MethodFactory
+    kind: MethodKind
+    description: str
+
+
+METHODS: dict[str, _Entry] = {}
+
+
+def register_method(
+    name: str, factory: MethodFactory, kind: MethodKind, description: str = ""
+) -> None:
+    """Add a method to the registry (a user can register their own)."""
+    if name in METHODS:
+        raise InvalidInputError(f"method {name!r} is already registered")
+    METHODS[name] = _Entry(factory, kind, description)
+
+
+def _lazy(module: str, attr: str, **fixed: Any) -> MethodFactory:
+    """Import the implementation only when the method is requested (Open3D etc. are heavy)."""
+
+    def factory(**params: Any) -> Method:
+        cls = getattr(importlib.import_module(module), attr)
+        return cls(**{**fixed, **params})
+
+    return factory
+
+
+def get_method(name: str, **params: Any) -> Method:
+    """Instantiate a registered method with optional parameters."""
+    try:
+        entry = METHODS[name]
+    except KeyError:
+        raise InvalidInputError(
+            f"unknown method {name!r}; available: {', '.join(list_methods())}"
+        ) from None
+    return entry.factory(**params)
+
+
+def list_methods(kind: MethodKind | None = None) -> list[str]:
+    """Registered method names (optionally only landmark or point methods), in table order."""
+    return [n for n, e in METHODS.items() if kind is None or e.kind == kind]
+
+
+_GM = "graffmatch.evaluation.methods"
+_BL = "graffmatch.evaluation.baselines"
+for _name, _factory, _kind, _desc in [
+    ("GraffMatch", _lazy(_GM, "GraffMatchMethod"), "landmark", "the paper's method"),
+    (
+        "GraffMatch-Naive",
+        _lazy(_GM, "GraffMatchMethod", name="GraffMatch-Naive", variant="naive"),
+        "landmark",
+        "d_Graff without the shift (not invariant)",
+    ),
+    (
+        "GraffMatch-lines",
+        _lazy(_GM, "GraffMatchMethod", name="GraffMatch-lines", landmark_types=("line",)),
+        "landmark",
+        "lines (poles) only",
+    ),
+    (
+        "GraffMatch-planes",
+        _lazy(_GM, "GraffMatchMethod", name="GraffMatch-planes", landmark_types=("plane",)),
+        "landmark",
+        "planes only",
+    ),
+    ("CPMatch", _lazy(f"{_BL}.cpmatch", "CPMatch"), "landmark", "Zhou et al. 2021 (pi-LSAM)"),
+    (
+        "BruteForceRMSE",
+        _lazy(f"{_BL}.bruteforce_rmse", "BruteForceRMSE"),
+        "landmark",
+        "Zhou et al. 2022 (PLC-LiSLAM)",
+    ),
+    ("ClusterMatch", _lazy(f"{_BL}.clustermatch", "ClusterMatch"), "landmark", "Cao et al. 2020"),
+    ("LiPMatch", _lazy(f"{_BL}.lipmatch", "LiPMatch"), "landmark", "Jiang et al. 2020"),
+    (
+        "CLIPPER-Rn",
+        _lazy(f"{_BL}.clipper_variants", "ClipperCentroids"),
+        "landmark",
+        "CLIPPER, Euclidean centroid distances",
+    ),
+    (
+        "CLIPPER-CP",
+        _lazy(f"{_BL}.clipper_variants", "ClipperCP"),
+        "landmark",
+        "CLIPPER, Euclidean CP-vector distances",
+    ),
+    (
+        "GraffMatch+ICP",
+        _lazy(_GM, "GraffMatchICP"),
+        "landmark",
+        "GraffMatch then ICP on the matched landmarks' points",
+    ),
+    ("FPFH+RANSAC", _lazy(f"{_BL}.fpfh_ransac", "FpfhRansac"), "point", "Open3D FPFH + RANSAC"),
+    ("ScanContext", _lazy(f"{_BL}.scan_context", "ScanContext"), "point", "Kim & Kim, yaw only"),
+    (
+        "ScanContext+ICP",
+        _lazy(f"{_BL}.scan_context", "ScanContextICP"),
+        "point",
+        "Scan Context yaw, then ICP",
+    ),
+    (
+        "KISS-Matcher",
+        _lazy(f"{_BL}.kiss_matcher", "KissMatcher"),
+        "point",
+        "Lim et al. 2025, PyPI kiss-matcher",
+    ),
+]:
+    register_method(_name, _factory, _kind, _desc)  # type: ignore[arg-type]
+
+#: Methods of the paper's Table I (landmark matching) and Table II (vs point-based).
+TABLE_I_METHODS = [
+    "CPMatch",
+    "BruteForceRMSE",
+    "ClusterMatch",
+    "LiPMatch",
+    "CLIPPER-Rn",
+    "CLIPPER-CP",
+    "GraffMatch",
+]
+TABLE_II_METHODS = ["GraffMatch+ICP", "FPFH+RANSAC", "ScanContext", "ScanContext+ICP"]
