@@ -1,0 +1,230 @@
+"""Plane landmarks: Open3D planar patches (Araujo & Oliveira 2020), merged into infinite planes.
+
+``PointCloud.detect_planar_patches`` returns bounded patches (oriented boxes). A wall seen
+through a tree or split by a door gives several patches of one infinite plane; the paper merges
+such "similar" planes, and so do we: two patches merge when their normals are within
+``merge_angle_deg``, each centroid is within ``merge_offset`` of the other's plane, and their
+supports come within ``merge_max_gap`` (so that two distant, coplanar facades stay distinct
+landmarks with their own anchors). The merged plane is refitted by PCA on the union of supports.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from graffmatch.lidar._stats import cluster_stats
+
+Array = NDArray[np.float64]
+
+
+class PlaneConfig(BaseModel):
+    """Planar-patch detection (Open3D) and merging; see docs/frontend.md for the tuning."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(True, description="Extract plane landmarks (besides the ground).")
+    voxel_size: float = Field(
+        0.3,
+        gt=0,
+        description="Voxel down-sampling before patch detection; sets speed and detail [m].",
+    )
+    normal_knn: int = Field(12, ge=3, description="Neighbours used to estimate point normals.")
+    normal_variance_threshold_deg: float = Field(
+        60.0, gt=0, le=90, description="Open3D: max spread of point normals in a patch [deg]."
+    )
+    coplanarity_deg: float = Field(
+        75.0,
+        gt=0,
+        le=90,
+        description="Open3D: min coplanarity of a patch (larger = flatter) [deg].",
+    )
+    outlier_ratio: float = Field(
+        0.75, gt=0, le=1, description="Open3D: max fraction of outliers before a patch is rejected."
+    )
+    min_plane_edge_length: float = Field(
+        1.0, ge=0, description="Open3D: patches whose largest edge is shorter are discarded [m]."
+    )
+    min_num_points: int = Field(
+        20, ge=0, description="Open3D: min points to try fitting a patch (0 = Open3D's default)."
+    )
+    patch_knn: int = Field(20, ge=3, description="Open3D: neighbours used to grow patches.")
+    box_inflation: float = Field(
+        0.1,
+        ge=0,
+        description="Support = down-sampled points inside the patch box grown by this margin [m].",
+    )
+    max_residual: float = Field(
+        0.2,
+        gt=0,
+        description="Support points must lie within this distance of the patch plane [m].",
+    )
+    merge_angle_deg: float = Field(
+        6.0, ge=0, le=90, description="Merge patches whose normals differ by less than this [deg]."
+    )
+    merge_offset: float = Field(
+        0.3,
+        ge=0,
+        description="... and whose centroids lie within this distance of the other plane [m].",
+    )
+    merge_max_gap: float = Field(
+        2.0, ge=0, description="... and whose supports come within this distance of each other [m]."
+    )
+    min_support: int = Field(30, ge=3, description="Minimum support points of a final plane.")
+    min_area: float = Field(
+        3.0, ge=0, description="Minimum area (OBB sides product) of a final plane [m^2]."
+    )
+    max_rms: float = Field(0.1, gt=0, description="Maximum RMS residual of a final plane [m].")
+
+
+@dataclass(frozen=True)
+class PlaneResult:
+    anchors: Array  # (k, 3) centroids of support
+    normals: Array  # (k, 3) unit, canonical sign (pointing towards the sensor origin)
+    box: Array  # (k, 2) OBB sides in the plane [m]
+    area: Array  # (k,) product of box sides [m^2]
+    support: NDArray[np.int64]  # (k,) support points (down-sampled cloud)
+    rms: Array  # (k,)
+    points: Array  # (M, 3) the down-sampled cloud the labels refer to
+    labels: NDArray[np.int64]  # (M,) plane id, -1 when unassigned
+    n_patches: int  # patches found by Open3D before merging
+
+    def __len__(self) -> int:
+        return int(self.anchors.shape[0])
+
+
+def _empty(points: Array, n_patches: int = 0) -> PlaneResult:
+    z = np.zeros(0)
+    return PlaneResult(
+        np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 2)), z, np.zeros(0, np.int64), z,
+        points, np.full(points.shape[0], -1, np.int64), n_patches,
+    )  # fmt: skip
+
+
+def downsample(points: Array, voxel_size: float) -> Array:
+    """Voxel centroids (Open3D); deterministic."""
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    return np.asarray(pc.voxel_down_sample(voxel_size).points)
+
+
+def detect_patches(points: Array, cfg: PlaneConfig) -> NDArray[np.int64]:
+    """Run Open3D's planar-patch detector; return a patch id per point (-1 none).
+
+    Open3D returns oriented boxes, not inliers; a point supports the first (largest) patch whose
+    box, grown by ``box_inflation``, contains it and whose plane is within ``max_residual``.
+    """
+    m = points.shape[0]
+    labels = np.full(m, -1, dtype=np.int64)
+    if m < max(cfg.min_num_points, cfg.patch_knn, 10):
+        return labels
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(cfg.normal_knn))
+    boxes = pc.detect_planar_patches(
+        normal_variance_threshold_deg=cfg.normal_variance_threshold_deg,
+        coplanarity_deg=cfg.coplanarity_deg,
+        outlier_ratio=cfg.outlier_ratio,
+        min_plane_edge_length=cfg.min_plane_edge_length,
+        min_num_points=cfg.min_num_points,
+        search_param=o3d.geometry.KDTreeSearchParamKNN(cfg.patch_knn),
+    )
+    if len(boxes) == 0:
+        return labels
+    centers = np.array([b.center for b in boxes])
+    Rs = np.array([b.R for b in boxes])
+    half = np.array([b.extent for b in boxes]) / 2.0 + cfg.box_inflation
+    # The box's thinnest axis is the patch normal; bound it by max_residual instead.
+    thin = np.argmin(half, axis=1)
+    half[np.arange(len(boxes)), thin] = cfg.max_residual
+    order = np.argsort(-np.prod(np.sort(half, axis=1)[:, 1:], axis=1), kind="stable")
+    # (M, P, 3) local box coordinates of every point for every patch: M*P is small (~1e5-1e6).
+    R_o = Rs[order]
+    local = (points @ R_o.transpose(1, 0, 2).reshape(3, -1)).reshape(m, len(order), 3)
+    local -= np.einsum("pk,pkj->pj", centers[order], R_o)[None]
+    inside = np.all(np.abs(local) <= half[order][None], axis=2)
+    hit = inside.any(axis=1)
+    labels[hit] = order[np.argmax(inside[hit], axis=1)]
+    return labels
+
+
+def merge_and_fit(
+    points: Array, labels: NDArray[np.int64], cfg: PlaneConfig, n_patches: int
+) -> PlaneResult:
+    """Merge patches of one infinite plane, refit by PCA and apply the final filters."""
+    k = int(labels.max(initial=-1)) + 1
+    if k == 0:
+        return _empty(points, n_patches)
+    st = cluster_stats(points, labels, k)
+    present = np.flatnonzero(st.counts >= 3)
+    if present.size == 0:
+        return _empty(points, n_patches)
+    nrm = st.normal()[present]
+    cen = st.centroids[present]
+    cos_max = np.cos(np.radians(cfg.merge_angle_deg))
+    dots = np.abs(nrm @ nrm.T)
+    off_ij = np.abs(
+        np.einsum("jk,ijk->ij", nrm, cen[:, None, :] - cen[None, :, :])
+    )  # |n_j.(c_i-c_j)|
+    cand = (dots >= cos_max) & (off_ij <= cfg.merge_offset) & (off_ij.T <= cfg.merge_offset)
+    np.fill_diagonal(cand, False)
+    ii, jj = np.nonzero(np.triu(cand))
+    if ii.size:
+        gap_ok = np.zeros(ii.size, dtype=bool)
+        trees: dict[int, cKDTree] = {}
+        for e, (a, b) in enumerate(zip(ii, jj, strict=True)):  # few candidate pairs
+            pa = points[labels == present[a]]
+            pb = points[labels == present[b]]
+            if a not in trees:
+                trees[a] = cKDTree(pa)
+            d, _ = trees[a].query(pb, k=1, distance_upper_bound=cfg.merge_max_gap + 1e-9)
+            gap_ok[e] = bool(np.isfinite(d).any())
+        ii, jj = ii[gap_ok], jj[gap_ok]
+    g = coo_matrix((np.ones(ii.size), (ii, jj)), shape=(present.size, present.size))
+    _, comp = connected_components(g, directed=False)
+    to_merged = np.full(k, -1, dtype=np.int64)
+    to_merged[present] = comp
+    merged = np.where(labels >= 0, to_merged[np.maximum(labels, 0)], -1)
+    km = int(comp.max()) + 1
+    st = cluster_stats(points, merged, km)
+    normals = st.normal().copy()
+    # Canonical sign: normals point towards the sensor origin (n . c <= 0), so that the Hesse
+    # offset d = n . c is <= 0 and the sign is stable between scans of the same scene.
+    flip = np.einsum("ij,ij->i", normals, st.centroids) > 0
+    normals[flip] *= -1
+    # In-plane extent from the PCA axes of each merged support.
+    ax1, ax2 = st.evecs[:, :, 2], st.evecs[:, :, 1]
+    q = points - st.centroids[np.maximum(merged, 0)]
+    valid = merged >= 0
+    box = np.zeros((km, 2))
+    for c, ax in enumerate((ax1, ax2)):
+        t = np.einsum("ij,ij->i", q[valid], ax[merged[valid]])
+        lo = np.full(km, np.inf)
+        hi = np.full(km, -np.inf)
+        np.minimum.at(lo, merged[valid], t)
+        np.maximum.at(hi, merged[valid], t)
+        box[:, c] = np.where(np.isfinite(hi - lo), hi - lo, 0.0)
+    area = box[:, 0] * box[:, 1]
+    rms = np.sqrt(st.evals[:, 0])
+    ok = (st.counts >= cfg.min_support) & (area >= cfg.min_area) & (rms <= cfg.max_rms)
+    keep = np.flatnonzero(ok)
+    remap = np.full(km, -1, dtype=np.int64)
+    remap[keep] = np.arange(keep.size)
+    final = np.where(merged >= 0, remap[np.maximum(merged, 0)], -1)
+    return PlaneResult(
+        st.centroids[keep], normals[keep], box[keep], area[keep], st.counts[keep], rms[keep],
+        points, final.astype(np.int64), n_patches,
+    )  # fmt: skip
+
+
+def extract_planes(points: Array, cfg: PlaneConfig, downsampled: bool = False) -> PlaneResult:
+    """Down-sample (unless already), detect patches, merge and refit."""
+    P = points if downsampled else downsample(points, cfg.voxel_size)
+    labels = detect_patches(P, cfg)
+    n_patches = int(np.unique(labels[labels >= 0]).size)
+    return merge_and_fit(P, labels, cfg, n_patches)
