@@ -188,8 +188,14 @@ def _landmark_traces(ls: LandmarkSet, who: str, color: str, group: str) -> list:
         text = np.repeat(_hover(ls, idx, who), 3).tolist()
         traces.append(
             go.Scatter3d(
-                x=x, y=y, z=z, mode="lines", line={"color": color, "width": 9},
-                name=f"{who} poles ({len(idx)})", legendgroup=group, text=text,
+                x=x,
+                y=y,
+                z=z,
+                mode="lines",
+                line={"color": color, "width": 9},
+                name=f"{who} poles ({len(idx)})",
+                legendgroup=group,
+                text=text,
                 hoverinfo="text",
             )
         )
@@ -202,9 +208,19 @@ def _landmark_traces(ls: LandmarkSet, who: str, color: str, group: str) -> list:
         k = np.concatenate([base + 2, base + 3])
         traces.append(
             go.Mesh3d(
-                x=verts[:, 0], y=verts[:, 1], z=verts[:, 2], i=i, j=j, k=k, color=color,
-                opacity=0.35, flatshading=True, name=f"{who} planes ({len(idx)})",
-                legendgroup=group, showlegend=True, hoverinfo="text",
+                x=verts[:, 0],
+                y=verts[:, 1],
+                z=verts[:, 2],
+                i=i,
+                j=j,
+                k=k,
+                color=color,
+                opacity=0.35,
+                flatshading=True,
+                name=f"{who} planes ({len(idx)})",
+                legendgroup=group,
+                showlegend=True,
+                hoverinfo="text",
                 text=np.repeat(_hover(ls, idx, who), 4).tolist(),
             )
         )
@@ -213,19 +229,30 @@ def _landmark_traces(ls: LandmarkSet, who: str, color: str, group: str) -> list:
         ring = ring.reshape(-1, 3)
         traces.append(
             go.Scatter3d(
-                x=ring[:, 0], y=ring[:, 1], z=ring[:, 2], mode="lines",
-                line={"color": color, "width": 3}, legendgroup=group, showlegend=False,
-                hoverinfo="skip", name=f"{who} plane outlines",
+                x=ring[:, 0],
+                y=ring[:, 1],
+                z=ring[:, 2],
+                mode="lines",
+                line={"color": color, "width": 3},
+                legendgroup=group,
+                showlegend=False,
+                hoverinfo="skip",
+                name=f"{who} plane outlines",
             )
         )
     pts = ls.indices_of_type(LandmarkType.POINT)
     if len(pts):
         traces.append(
             go.Scatter3d(
-                x=ls.anchors[pts, 0], y=ls.anchors[pts, 1], z=ls.anchors[pts, 2],
-                mode="markers", marker={"color": color, "size": 5, "symbol": "diamond"},
-                name=f"{who} points ({len(pts)})", legendgroup=group,
-                text=_hover(ls, pts, who), hoverinfo="text",
+                x=ls.anchors[pts, 0],
+                y=ls.anchors[pts, 1],
+                z=ls.anchors[pts, 2],
+                mode="markers",
+                marker={"color": color, "size": 5, "symbol": "diamond"},
+                name=f"{who} points ({len(pts)})",
+                legendgroup=group,
+                text=_hover(ls, pts, who),
+                hoverinfo="text",
             )
         )
     return traces
@@ -237,18 +264,31 @@ def _axes_traces(T: np.ndarray, length: float, who: str, group: str) -> list:
     o = T[:3, 3]
     traces = [
         go.Scatter3d(
-            x=[o[0]], y=[o[1]], z=[o[2]], mode="markers+text", text=[f"{who} sensor"],
-            textposition="top center", marker={"size": 5, "color": "black"},
-            name=f"{who} origin", legendgroup=group, showlegend=False,
+            x=[o[0]],
+            y=[o[1]],
+            z=[o[2]],
+            mode="markers+text",
+            text=[f"{who} sensor"],
+            textposition="top center",
+            marker={"size": 5, "color": "black"},
+            name=f"{who} origin",
+            legendgroup=group,
+            showlegend=False,
         )
     ]
     for axis, color in enumerate(AXIS_COLORS):
         tip = o + length * T[:3, axis]
         traces.append(
             go.Scatter3d(
-                x=[o[0], tip[0]], y=[o[1], tip[1]], z=[o[2], tip[2]], mode="lines",
-                line={"color": color, "width": 6}, legendgroup=group, showlegend=False,
-                hoverinfo="skip", name=f"{who} {'xyz'[axis]}-axis",
+                x=[o[0], tip[0]],
+                y=[o[1], tip[1]],
+                z=[o[2], tip[2]],
+                mode="lines",
+                line={"color": color, "width": 6},
+                legendgroup=group,
+                showlegend=False,
+                hoverinfo="skip",
+                name=f"{who} {'xyz'[axis]}-axis",
             )
         )
     return traces
@@ -271,8 +311,14 @@ def _correspondence_traces(
         x, y, z = _segments_xyz(src_anchors[sel], tgt_anchors[sel])
         traces.append(
             go.Scatter3d(
-                x=x, y=y, z=z, mode="lines", line={"color": color, "width": 5},
-                name=f"{name} ({int(sel.sum())})", legendgroup=name, hoverinfo="name",
+                x=x,
+                y=y,
+                z=z,
+                mode="lines",
+                line={"color": color, "width": 5},
+                name=f"{name} ({int(sel.sum())})",
+                legendgroup=name,
+                hoverinfo="name",
             )
         )
     return traces
@@ -282,13 +328,20 @@ def _points_trace(P: np.ndarray, color: str, name: str, group: str, size: float)
     import plotly.graph_objects as go
 
     return go.Scatter3d(
-        x=P[:, 0], y=P[:, 1], z=P[:, 2], mode="markers",
-        marker={"size": size, "color": color, "opacity": 0.55}, name=name,
-        legendgroup=group, hoverinfo="skip",
+        x=P[:, 0],
+        y=P[:, 1],
+        z=P[:, 2],
+        mode="markers",
+        marker={"size": size, "color": color, "opacity": 0.55},
+        name=name,
+        legendgroup=group,
+        hoverinfo="skip",
     )
 
 
-def _side_by_side(target_extent: np.ndarray, source_extent: np.ndarray, margin: float) -> np.ndarray:
+def _side_by_side(
+    target_extent: np.ndarray, source_extent: np.ndarray, margin: float
+) -> np.ndarray:
     """T_display_source that puts the raw source just beyond the target along +y."""
     T = np.eye(4)
     T[1, 3] = target_extent[1, 1] - source_extent[0, 1] + margin
@@ -367,8 +420,11 @@ def match_figure(
         if len(src_pts):
             traces.append(
                 _points_trace(
-                    transform_points(Tp, src_pts).astype(np.float32), SOURCE_COLOR,
-                    "source scan", "source", point_size,
+                    transform_points(Tp, src_pts).astype(np.float32),
+                    SOURCE_COLOR,
+                    "source scan",
+                    "source",
+                    point_size,
                 )
             )
         traces += _landmark_traces(placed, "source", SOURCE_LANDMARK_COLOR, "source lm")
@@ -444,14 +500,26 @@ def write_match_view(
     scan's own frame [m]; at most ``max_points`` of each are drawn.
     """
     fig = match_figure(
-        source_landmarks, target_landmarks, T_target_source, associations, source_points,
-        target_points, inlier_mask, title=title, info=info, max_points=max_points,
+        source_landmarks,
+        target_landmarks,
+        T_target_source,
+        associations,
+        source_points,
+        target_points,
+        inlier_mask,
+        title=title,
+        info=info,
+        max_points=max_points,
     )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.write_html(
-        str(path), include_plotlyjs=True, full_html=True, auto_open=False,
+        str(path),
+        include_plotlyjs=True,
+        full_html=True,
+        auto_open=False,
         config={"displaylogo": False, "responsive": True},
-        default_width="100%", default_height="94vh",
+        default_width="100%",
+        default_height="94vh",
     )
     return path

@@ -1,0 +1,182 @@
+"""Shared plumbing of the CLI: global state, consoles, progress bars, errors and run folders.
+
+Results go to stdout (so that they can be piped); progress, logs and errors go to stderr.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import sys
+import time
+import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any, TypeVar
+
+import typer
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    SpinnerColumn,
+    TaskProgressColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+from graffmatch.errors import GraffMatchError
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+#: Exit codes (documented in ``graffmatch --help`` and docs/cli.md).
+EXIT_ERROR = 1
+EXIT_USAGE = 2  # click's own code for bad usage
+EXIT_NOT_VALID = 3  # the command ran, but its result misses its bounds / is not valid
+
+
+@dataclass
+class State:
+    """What the global options set; read by every command."""
+
+    verbosity: int = 0  # -1 quiet, 0 normal, 1 -v, 2 -vv
+    config_path: Path | None = None
+    _settings: Any = field(default=None, repr=False)
+
+    @property
+    def quiet(self) -> bool:
+        return self.verbosity < 0
+
+    @property
+    def settings(self):
+        """Settings loaded lazily (file + environment), so ``--help`` never touches them."""
+        if self._settings is None:
+            from graffmatch.cli.settings import load_settings
+
+            self._settings = load_settings(self.config_path)
+        return self._settings
+
+
+STATE = State()
+out = Console(highlight=False, soft_wrap=True)  # results (stdout)
+err = Console(stderr=True, highlight=False, soft_wrap=True)  # progress, logs, errors
+
+
+def reset_state(verbosity: int = 0, config_path: Path | None = None) -> None:
+    STATE.verbosity = verbosity
+    STATE.config_path = config_path
+    STATE._settings = None
+    level = {-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO}.get(verbosity, logging.DEBUG)
+    logging.getLogger("graffmatch").setLevel(level)
+    if verbosity < 0:
+        warnings.filterwarnings("ignore", category=RuntimeWarning, module="graffmatch")
+
+
+def info(message: str) -> None:
+    """A line of normal output; suppressed by ``-q``."""
+    if not STATE.quiet:
+        out.print(message)
+
+
+def debug(message: str) -> None:
+    if STATE.verbosity > 0:
+        err.print(f"[dim]{message}[/dim]")
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or exc.__class__.__name__
+    if isinstance(exc, FileNotFoundError) and exc.filename:
+        text = f"{exc.filename}: file not found"
+    elif isinstance(exc, IsADirectoryError) and exc.filename:
+        text = f"{exc.filename}: is a directory"
+    elif isinstance(exc, PermissionError) and exc.filename:
+        text = f"{exc.filename}: permission denied"
+    return text
+
+
+def cli_errors(fn: F) -> F:
+    """Show library/OS/value errors as ONE line on stderr with exit code 1 (traceback with -v).
+
+    The CLI catches these at the top of every command (not in ``__main__``) so that typer's
+    test runner and the installed entry point behave the same way.
+    """
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return fn(*args, **kwargs)
+        except (typer.Exit, typer.Abort, KeyboardInterrupt):
+            raise
+        except (GraffMatchError, OSError, ValueError, ImportError) as exc:
+            if STATE.verbosity > 0:
+                raise
+            kind = "" if isinstance(exc, GraffMatchError) else f" ({exc.__class__.__name__})"
+            err.print(f"[bold red]error[/bold red]{kind}: {_one_line(exc)}", markup=True)
+            raise typer.Exit(EXIT_ERROR) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def make_progress(transient: bool = True) -> Progress:
+    """A rich progress bar with an ETA on stderr; disabled by ``-q`` or a non-terminal."""
+    return Progress(
+        SpinnerColumn(),
+        TextColumn("[progress.description]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TaskProgressColumn(),
+        TimeElapsedColumn(),
+        TextColumn("ETA"),
+        TimeRemainingColumn(),
+        console=err,
+        transient=transient,
+        disable=STATE.quiet,
+    )
+
+
+@contextmanager
+def stage(progress: Progress, task_id: Any, description: str) -> Iterator[None]:
+    """Name the current step of a multi-step task and advance it when the step ends."""
+    progress.update(task_id, description=description)
+    t0 = time.perf_counter()
+    yield
+    progress.advance(task_id)
+    debug(f"{description}: {1e3 * (time.perf_counter() - t0):.1f} ms")
+
+
+def timestamp() -> str:
+    return datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+
+
+def run_dir(root: Path | str, command: str) -> Path:
+    """A new output folder named by time: ``<root>/2026-11-21_14-03-12_<command>/``."""
+    root = Path(root)
+    base = root / f"{timestamp()}_{command}"
+    path = base
+    k = 2
+    while path.exists():
+        path = Path(f"{base}-{k}")
+        k += 1
+    path.mkdir(parents=True)
+    return path
+
+
+def write_config_next_to(folder: Path) -> Path:
+    """Save the exact configuration used next to the results (kiss-icp's habit)."""
+    from graffmatch.cli.settings import save_settings
+
+    return save_settings(STATE.settings, folder / "config.yaml")
+
+
+def exit_with(code: int) -> None:
+    if code:
+        raise typer.Exit(code)
+
+
+def python_version() -> str:
+    return ".".join(str(v) for v in sys.version_info[:3])

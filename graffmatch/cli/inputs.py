@@ -1,0 +1,237 @@
+"""Reading what users pass on the command line: scans, landmark files, transforms; writing poses.
+
+Every failure raises a :mod:`graffmatch.errors` exception whose message names the file, so the
+CLI can show it as one line.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.geometry.landmarks import LandmarkSet
+
+PoseFormat = Literal["kitti", "tum"]
+#: Suffixes read as point clouds (mirrors graffmatch.lidar.io.POINT_SUFFIXES, kept here so that
+#: ``graffmatch --help`` does not import Open3D).
+SCAN_SUFFIXES = (".bin", ".pcd", ".ply", ".npy", ".npz")
+
+
+def is_landmark_file(path: Path) -> bool:
+    """A graffmatch landmark file is an ``.npz`` with a ``meta`` entry naming the format."""
+    if path.suffix.lower() != ".npz":
+        return False
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "meta" not in z.files:
+                return False
+            meta = json.loads(str(z["meta"]))
+    except (OSError, ValueError, EOFError) as exc:
+        raise MalformedFileError(f"{path}: cannot read ({exc})") from exc
+    return isinstance(meta, dict) and meta.get("format") == "graffmatch-landmarks"
+
+
+def require_file(path: Path, what: str = "input") -> Path:
+    if not path.exists():
+        raise MalformedFileError(f"{path}: {what} not found")
+    if path.is_dir():
+        raise MalformedFileError(f"{path}: {what} is a folder, expected a file")
+    return path
+
+
+def list_scans(folder: Path) -> list[Path]:
+    """Scan files of a folder (or of its ``velodyne/`` subfolder, KITTI layout), sorted."""
+    if (folder / "velodyne").is_dir():
+        folder = folder / "velodyne"
+    files = sorted(
+        p
+        for p in folder.iterdir()
+        if p.is_file() and p.suffix.lower() in SCAN_SUFFIXES and not is_landmark_file(p)
+    )
+    if not files:
+        raise MalformedFileError(
+            f"{folder}: no scan files ({', '.join(SCAN_SUFFIXES)}) in this folder"
+        )
+    return files
+
+
+def find_labels(scan: Path, explicit: Path | None, mode: str) -> Path | None:
+    """The SemanticKITTI label file of a scan: explicit file/folder, else auto-discovered."""
+    if explicit is not None:
+        cand = explicit / (scan.stem + ".label") if explicit.is_dir() else explicit
+        if not cand.exists():
+            raise MalformedFileError(f"{cand}: label file not found")
+        return cand
+    if mode == "never":
+        return None
+    from graffmatch.lidar.io import label_path_for
+
+    cand = label_path_for(scan)
+    return cand if cand.exists() else None
+
+
+def read_scan(path: Path, labels: Path | None = None) -> tuple[NDArray, NDArray | None]:
+    """(N, 4) float32 points and optional (N,) uint32 labels."""
+    from graffmatch.lidar.io import read_label, read_points
+
+    require_file(path, "scan")
+    pts = read_points(path)
+    lab = None if labels is None else read_label(labels, n_points=len(pts))
+    return pts, lab
+
+
+@dataclass
+class LoadedInput:
+    """A command-line input resolved to landmarks (and the scan points when it was a scan)."""
+
+    path: Path
+    kind: Literal["scan", "landmarks"]
+    landmarks: LandmarkSet
+    points: NDArray | None = None
+    labels_path: Path | None = None
+    timings: dict[str, float] | None = None
+
+
+# ----------------------------------------------------------------------------------------------
+# transforms and pose files
+# ----------------------------------------------------------------------------------------------
+_NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+
+
+def _project_to_se3(T: NDArray, source: str) -> NDArray:
+    """Accept text transforms with a few digits: snap R to SO(3) if it is within 1e-3."""
+    R = T[:3, :3]
+    U, _, Vt = np.linalg.svd(R)
+    Rn = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    if not np.all(np.isfinite(T)) or np.abs(Rn - R).max() > 1e-3:
+        raise InvalidInputError(f"{source}: the rotation block is not a rotation matrix")
+    if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6):
+        raise InvalidInputError(f"{source}: the last row must be 0 0 0 1")
+    out = np.eye(4)
+    out[:3, :3] = Rn
+    out[:3, 3] = T[:3, 3]
+    return out
+
+
+def parse_transform(text: str, source: str = "transform") -> NDArray[np.float64]:
+    """16 numbers (4x4) or 12 numbers (KITTI 3x4, row-major) -> a 4x4 rigid transform."""
+    values = [float(v) for v in _NUMBER.findall(text)]
+    if len(values) == 12:
+        T = np.eye(4)
+        T[:3, :] = np.reshape(values, (3, 4))
+    elif len(values) == 16:
+        T = np.reshape(values, (4, 4))
+    else:
+        raise InvalidInputError(
+            f"{source}: expected 12 (3x4) or 16 (4x4) numbers, found {len(values)}"
+        )
+    return _project_to_se3(np.asarray(T, float), source)
+
+
+def read_transform(arg: str) -> NDArray[np.float64]:
+    """``--gt`` value: a text file holding a 4x4/3x4 matrix, or the 12/16 numbers inline."""
+    path = Path(arg)
+    if path.exists():
+        if path.suffix.lower() == ".json":
+            try:
+                data = json.loads(path.read_text())
+            except json.JSONDecodeError as exc:
+                raise MalformedFileError(f"{path}: not valid JSON ({exc})") from exc
+            mat = data.get("T_target_source", data) if isinstance(data, dict) else data
+            return parse_transform(json.dumps(mat), str(path))
+        return parse_transform(path.read_text(), str(path))
+    if len(_NUMBER.findall(arg)) in (12, 16):
+        return parse_transform(arg, "--gt")
+    raise MalformedFileError(f"{arg}: ground-truth transform file not found")
+
+
+def rotation_to_quaternion_xyzw(R: ArrayLike) -> NDArray[np.float64]:
+    """Unit quaternion (x, y, z, w) with w >= 0, the TUM order."""
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(np.asarray(R, float)).as_quat()
+    return -q if q[3] < 0 else q
+
+
+def pose_line(T: ArrayLike, fmt: PoseFormat, timestamp: float = 0.0) -> str:
+    """One pose line: KITTI (12 numbers of the 3x4, row-major) or TUM (t tx ty tz qx qy qz qw)."""
+    T = np.asarray(T, float)
+    if fmt == "kitti":
+        return " ".join(f"{v:.9e}" for v in T[:3, :].reshape(-1))
+    if fmt == "tum":
+        q = rotation_to_quaternion_xyzw(T[:3, :3])
+        vals = [timestamp, *T[:3, 3], *q]
+        return " ".join(f"{v:.9f}" for v in vals)
+    raise InvalidInputError(f"unknown pose format {fmt!r} (kitti or tum)")
+
+
+def write_pose_file(path: Path, T: ArrayLike, fmt: PoseFormat, timestamp: float = 0.0) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(pose_line(T, fmt, timestamp) + "\n")
+    return path
+
+
+def read_pose_line(line: str, fmt: PoseFormat) -> NDArray[np.float64]:
+    """Inverse of :func:`pose_line` (used by the tests and by ``view``)."""
+    vals = [float(v) for v in line.split()]
+    if fmt == "kitti":
+        return parse_transform(line, "pose line")
+    if len(vals) != 8:
+        raise MalformedFileError(f"TUM pose line needs 8 numbers, got {len(vals)}")
+    from scipy.spatial.transform import Rotation
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(vals[4:8]).as_matrix()
+    T[:3, 3] = vals[1:4]
+    return T
+
+
+# ----------------------------------------------------------------------------------------------
+# result files
+# ----------------------------------------------------------------------------------------------
+RESULT_FORMAT = "graffmatch-register-result"
+
+
+def path_record(path: Path | None, base: Path) -> dict[str, str] | None:
+    """Store a path both absolute and relative to the result's folder (folders move)."""
+    if path is None:
+        return None
+    path = Path(path).resolve()
+    try:
+        rel = str(path.relative_to(base.resolve()))
+    except ValueError:
+        rel = None
+    rec = {"absolute": str(path)}
+    if rel is not None:
+        rec["relative"] = rel
+    return rec
+
+
+def resolve_path_record(rec: dict[str, str] | str | None, base: Path) -> Path | None:
+    if rec is None:
+        return None
+    if isinstance(rec, str):
+        rec = {"absolute": rec}
+    if "relative" in rec and (base / rec["relative"]).exists():
+        return base / rec["relative"]
+    return Path(rec["absolute"])
+
+
+def load_result(path: Path) -> dict:
+    require_file(path, "result file")
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise MalformedFileError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(data, dict) or data.get("format") != RESULT_FORMAT:
+        raise MalformedFileError(
+            f"{path}: not a graffmatch register result (format {RESULT_FORMAT})"
+        )
+    return data
