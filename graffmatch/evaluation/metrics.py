@@ -85,19 +85,19 @@ def association_distances_deg(
 
     Associations between different landmark types get +inf (never inliers).
     """
-    from graffmatch.geometry.distance import cross_distances  # lazy: keep metrics importable
+    from graffmatch.geometry.distance import directed_distances  # lazy: keep metrics light
 
     a = _check_associations(associations, len(source), len(target))
     if len(a) == 0:
         return np.zeros(0)
     T = check_transform(T_target_source_gt, "T_target_source_gt")
     src = source.without_points().transform(T)
-    tgt = target.without_points()
-    ui, inv_i = np.unique(a[:, 0], return_inverse=True)
-    uj, inv_j = np.unique(a[:, 1], return_inverse=True)
-    # Only the landmarks that occur in an association: |ui| x |uj| <= k^2 and <= n_s x n_t.
-    D = np.asarray(cross_distances(src[ui], tgt[uj], rho=rho), dtype=float)
-    d = D[inv_i.reshape(-1), inv_j.reshape(-1)]
+    s = (src.types[a[:, 0]], src.bases[a[:, 0]], src.anchors[a[:, 0]])
+    t = (target.types[a[:, 1]], target.bases[a[:, 1]], target.anchors[a[:, 1]])
+    # Symmetrised over the shift order, exactly as geometry.distance.cross_distances, but only
+    # for the k associated pairs (O(k), not O(n_s n_t)).
+    d = 0.5 * (directed_distances(*s, *t, rho=rho) + directed_distances(*t, *s, rho=rho))
+    d[s[0] != t[0]] = np.inf
     return np.degrees(d)
 
 
