@@ -1,0 +1,134 @@
+"""Board-plane extraction from a point cloud (LiDAR sweep or back-projected depth image).
+
+The detection itself is the LiDAR front-end's (:func:`graffmatch.lidar.planes.extract_planes`:
+Open3D planar patches, merged, refitted by PCA), so the logic exists once; this module only
+tunes it for calibration targets and turns the result into a plane :class:`LandmarkSet`.
+
+Why keep only board-sized planes: a ground plane or a wall is seen *partially* and differently
+by two sensors, so its anchor (the centre of what each sensor sees) differs between them and
+the anchor-shifted Grassmannian distance would disagree across the two views. Calibration
+targets are seen whole, so their anchors name the same physical point. The filter is on the
+plane's in-plane box sides; set it to ``(0, inf)`` to keep every plane.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from graffmatch.errors import InvalidInputError
+from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
+from graffmatch.lidar.planes import PlaneConfig, extract_planes
+
+Array = NDArray[np.float64]
+
+
+def _board_detector() -> PlaneConfig:
+    """Front-end settings for ~1 m boards at 2–8 m: fine voxels, small planes, no merging
+    across gaps (two boards that happen to be near-coplanar must stay two landmarks)."""
+    return PlaneConfig(
+        voxel_size=0.03,
+        normal_knn=12,
+        min_plane_edge_length=0.3,
+        min_num_points=10,
+        box_inflation=0.03,
+        max_residual=0.05,
+        merge_angle_deg=3.0,
+        merge_offset=0.05,
+        merge_max_gap=0.05,
+        min_support=30,
+        min_area=0.05,
+        max_rms=0.04,
+    )
+
+
+class PlaneExtractionConfig(BaseModel):
+    """How planar boards are extracted from a point cloud (metres)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    detector: PlaneConfig = Field(
+        default_factory=_board_detector,
+        description="LiDAR front-end plane detector (graffmatch.lidar.planes), tuned for boards.",
+    )
+    max_range: float = Field(
+        20.0, gt=0, description="Points farther than this from the sensor are ignored [m]."
+    )
+    min_side: float = Field(
+        0.3, ge=0, description="Both in-plane box sides must be at least this long [m] (boards)."
+    )
+    max_side: float = Field(
+        3.0, gt=0, description="Both in-plane box sides must be at most this long [m] (boards)."
+    )
+
+
+def planes_from_points(points: ArrayLike, config: PlaneExtractionConfig | None = None) -> LandmarkSet:
+    """Extract board planes from an (N, 3) cloud in the sensor frame [m].
+
+    Returns a plane-only :class:`LandmarkSet` in the same frame, normals pointing towards the
+    sensor. Anchor = centre of the in-plane bounding box of the support (not the centroid:
+    sampling density varies across a tilted board, the box centre does not), with ``support``,
+    ``rms``, ``box`` and ``extent`` attributes and the support points attached.
+    """
+    cfg = config or PlaneExtractionConfig()
+    P = np.asarray(points, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise InvalidInputError(f"points must be (N, 3), got {P.shape}")
+    P = P[np.all(np.isfinite(P), axis=1)]
+    P = P[np.linalg.norm(P, axis=1) <= cfg.max_range]
+    if len(P) < cfg.detector.min_support:
+        raise InvalidInputError(f"only {len(P)} valid points; cannot extract planes")
+    res = extract_planes(P, cfg.detector)
+    pts, labels = res.points, res.labels
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(len(res) + 1))
+    anchors, normals, sides, chunks, keep = [], [], [], [], []
+    for i in range(len(res)):  # loop over planes (tens), vectorised over their points
+        S = pts[order[bounds[i] : bounds[i + 1]]]
+        c = S.mean(axis=0)
+        _, _, Vt = np.linalg.svd(S - c, full_matrices=False)
+        uv = (S - c) @ Vt[:2].T
+        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        side = hi - lo
+        if np.any(side < cfg.min_side) or np.any(side > cfg.max_side):
+            continue
+        keep.append(i)
+        anchors.append(c + Vt[:2].T @ ((lo + hi) / 2.0))
+        normals.append(res.normals[i])
+        sides.append(np.sort(side)[::-1])
+        chunks.append(S.astype(np.float32))
+    if not keep:
+        return _empty_planes()
+    k = len(keep)
+    box = np.asarray(sides)
+    offsets = np.concatenate([[0], np.cumsum([len(ch) for ch in chunks])])
+    return LandmarkSet.from_arrays(
+        np.full(k, LandmarkType.PLANE),
+        np.asarray(normals),
+        np.asarray(anchors),
+        {
+            "support": res.support[keep].astype(np.int64),
+            "rms": res.rms[keep],
+            "box": box,
+            "extent": box[:, 0] * box[:, 1],
+        },
+        np.concatenate(chunks),
+        offsets,
+    )
+
+
+def _empty_planes() -> LandmarkSet:
+    return LandmarkSet(
+        np.zeros(0, np.int8),
+        np.zeros((0, 3, 2)),
+        np.zeros((0, 3)),
+        {
+            "support": np.zeros(0, np.int64),
+            "rms": np.zeros(0),
+            "box": np.zeros((0, 2)),
+            "extent": np.zeros(0),
+        },
+        np.zeros((0, 3), np.float32),
+        np.zeros(1, np.int64),
+    )
