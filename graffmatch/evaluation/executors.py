@@ -130,20 +130,20 @@ class LocalProcessExecutor:
                 pending[pool.submit(fn, item)] = i
 
         try:
-            fill()
-            while pending:
-                done, _ = wait(pending, return_when=FIRST_COMPLETED)
-                for fut in done:
-                    i = pending.pop(fut)
-                    try:
-                        result = fut.result()
-                    except BrokenProcessPool as exc:
-                        raise WorkerLostError(
-                            "a worker process died (killed or out of memory); finished results "
-                            "are saved, rerun to resume"
-                        ) from exc
-                    yield i, result
+            try:
                 fill()
+                while pending:
+                    done, _ = wait(pending, return_when=FIRST_COMPLETED)
+                    for fut in done:
+                        i = pending.pop(fut)
+                        result = fut.result()
+                        yield i, result
+                    fill()
+            except BrokenProcessPool as exc:
+                raise WorkerLostError(
+                    "a worker process died (killed or out of memory); finished results "
+                    "are saved, rerun to resume"
+                ) from exc
         finally:
             for fut in pending:
                 fut.cancel()
