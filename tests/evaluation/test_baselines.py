@@ -287,7 +287,7 @@ def test_lipmatch_interpretation_tree_rejects_inconsistent_planes() -> None:
     decoy = LandmarkSet.from_arrays(
         [2],
         tgt_true.directions[:1],
-        [*tgt_true.anchors[:1], [0, 0, 30.0]],
+        tgt_true.anchors[:1] + np.array([[0.0, 0.0, 30.0]]),
         {"extent": np.array([40.0]), "box": np.array([[8.0, 5.0]])},
     )
     tgt = LandmarkSet.concatenate([decoy, tgt_true])
