@@ -95,7 +95,7 @@ def try_match(ls_src: LandmarkSet, ls_tgt: LandmarkSet, T_tgt_src_true: np.ndarr
         "valid": bool(res.valid),
         "rot_err_deg": float(rot),
         "trans_err_m": float(tr),
-        "n_assoc": int(len(res.associations)),
+        "n_assoc": len(res.associations),
         "n_assoc_correct": n_corr,
         "time_s": dt,
         "message": str(getattr(res, "message", "")),
@@ -145,7 +145,9 @@ def extract_all(folder: Path, frames: list[int], ex: LandmarkExtractor) -> tuple
     return lss, rows
 
 
-def balm_pairs(poses: np.ndarray, n: int, lo: float = 5.0, hi: float = 16.0) -> list[tuple[int, int]]:
+def balm_pairs(
+    poses: np.ndarray, n: int, lo: float = 5.0, hi: float = 16.0
+) -> list[tuple[int, int]]:
     """A deterministic, spread-out sample of pairs whose positions are lo..hi m apart."""
     t = poses[:, :3, 3]
     d = np.linalg.norm(t[:, None] - t[None], axis=2)
@@ -174,8 +176,12 @@ def fmt_pair(r: dict) -> str:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument(
+        "--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data"
+    )
     ap.add_argument("--pairs", type=int, default=12, help="balm_courtyard pairs to sample")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
@@ -194,7 +200,9 @@ def main() -> None:
             f"(ratio 1:{r['scan_bytes'] / max(r['landmark_bytes'], 1):.0f})"
         )
     pairs = [evaluate_pair(lss, poses, 0, b) for b in (1, 3, 5)]
-    print("== kitti00_first6: repeatability (tau = 6 deg, rho = 40 m) and matcher 0 <- b (b moved 180 deg + 10 m)")
+    print(
+        "== kitti00_first6: repeatability (tau = 6 deg, rho = 40 m) and matcher 0 <- b (b moved 180 deg + 10 m)"
+    )
     for r in pairs:
         print("  " + fmt_pair(r))
     report["kitti"] = {"scans": rows, "pairs": pairs}

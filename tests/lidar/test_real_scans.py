@@ -1,0 +1,78 @@
+"""The front end on real KITTI HDL-64E scans (kitti00_first6); skips without ../shared/data."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from graffmatch.geometry.landmarks import LandmarkType
+from graffmatch.geometry.transforms import invert, make_transform, rot_z
+from graffmatch.lidar import LandmarkExtractor, read_points
+
+
+def _lidar_poses(folder) -> np.ndarray:
+    raw = np.loadtxt(folder / "poses.txt").reshape(-1, 3, 4)
+    P = np.tile(np.eye(4), (len(raw), 1, 1))
+    P[:, :3] = raw
+    line = next(s for s in (folder / "calib.txt").read_text().splitlines() if s.startswith("Tr:"))
+    Tr = np.eye(4)
+    Tr[:3] = np.array(line.split()[1:], float).reshape(3, 4)
+    P = np.einsum("ij,njk,kl->nil", invert(Tr), P, Tr)
+    U, _, Vt = np.linalg.svd(P[:, :3, :3])
+    P[:, :3, :3] = U @ Vt
+    return P
+
+
+@pytest.fixture(scope="module")
+def kitti(shared_data):
+    folder = shared_data / "kitti00_first6"
+    ex = LandmarkExtractor()
+    out = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for i in (0, 3, 5):
+            out[i] = ex.extract(read_points(folder / "velodyne" / f"{i:06d}.bin"))
+    return folder, out
+
+
+def test_counts_plausible(kitti) -> None:
+    _, lss = kitti
+    for ls in lss.values():
+        c = ls.counts()
+        assert 2 <= c["lines"] <= 40, c
+        assert 8 <= c["planes"] <= 60, c
+        ground = ls.attributes["is_ground"] > 0
+        assert ground.sum() == 1
+        # the ground is below the sensor (HDL-64E ~1.73 m above the road) and near-level
+        n, d = ls[np.flatnonzero(ground)].hesse()[0, :3], ls[np.flatnonzero(ground)].hesse()[0, 3]
+        assert n[2] > 0.99 and -2.0 < d < -1.5
+        lines = ls.of_type(LandmarkType.LINE)
+        assert np.all(np.abs(lines.directions[:, 2]) > np.cos(np.radians(15)))
+
+
+def test_landmark_file_is_compact(kitti, tmp_path) -> None:
+    folder, lss = kitti
+    size = len(lss[0].to_bytes(include_points=False))
+    raw = (folder / "velodyne" / "000000.bin").stat().st_size
+    assert size < 10_000 and raw / size > 100
+
+
+@pytest.mark.parametrize("other,min_rep", [(3, 0.7), (5, 0.65)])
+def test_repeatability_after_gt_alignment(kitti, other: int, min_rep: float) -> None:
+    """Landmarks of frame 0 with a counterpart in frame `other` within 6 deg (rho = 40 m)."""
+    dist = pytest.importorskip("graffmatch.geometry.distance")
+    folder, lss = kitti
+    P = _lidar_poses(folder)
+    b_in_0 = lss[other].transform(invert(P[0]) @ P[other])
+    D = dist.cross_distances(lss[0], b_in_0, rho=40.0)
+    hit = D.min(axis=1) <= np.radians(6.0)
+    assert hit.mean() >= min_rep
+    # ... and not trivially permissive: after a wrong alignment (GT then 30 deg of yaw about the
+    # sensor) only landmarks yaw barely moves (ground, horizontal patches, near poles) match.
+    wrong = lss[other].transform(
+        make_transform(rot_z(np.radians(30)), np.zeros(3)) @ invert(P[0]) @ P[other]
+    )
+    hit_wrong = dist.cross_distances(lss[0], wrong, rho=40.0).min(axis=1) <= np.radians(6.0)
+    assert hit_wrong.mean() < 0.5 * hit.mean()
