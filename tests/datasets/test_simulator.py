@@ -1,0 +1,374 @@
+"""Tests of the simulated LiDAR world: determinism, KITTI layout, GT consistency, sensor, routes."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from graffmatch.datasets.simulator import (
+    CATEGORIES,
+    KITTI00_TR,
+    PROFILES,
+    SUITES,
+    build_world,
+    camera_to_lidar_poses,
+    get_profile,
+    gt_landmarks_in_scan,
+    lidar_to_camera_poses,
+    plan_route,
+    render_scan,
+    revisit_pairs,
+    scan_ground_truth,
+    simulate_dataset,
+    simulate_scan_pair,
+    world_preset,
+)
+from graffmatch.datasets.simulator.world import POLE, ROAD, TRUNK
+from graffmatch.errors import InvalidInputError
+from graffmatch.geometry.landmarks import LandmarkSet, fit_landmark
+from graffmatch.geometry.transforms import invert, random_transform, transform_points
+
+CLASSES = {10, 40, 48, 50, 51, 70, 71, 72, 80, 81, 99}
+
+
+@pytest.fixture(scope="module")
+def worlds():
+    return {s: build_world(s, 3) for s in ("downtown", "suburban", "open-road")}
+
+
+@pytest.fixture(scope="module")
+def scans(worlds):
+    """One HDL-64 scan per style from the middle of a planned route."""
+    out = {}
+    for style, w in worlds.items():
+        T = plan_route(w, 30, 3).T_world_lidar[15]
+        pts, labels, lm = render_scan(w, T, "hdl64", 0, return_landmarks=True)
+        out[style] = (T, pts, labels, lm)
+    return out
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim") / "seq"
+    t = time.perf_counter()
+    simulate_dataset(out, style="open-road", seed=5, n_scans=8)
+    return out, time.perf_counter() - t
+
+
+# ---- world --------------------------------------------------------------------------------
+def test_world_is_deterministic_and_seed_dependent():
+    a, b, c = build_world("open-road", 7), build_world("open-road", 7), build_world("open-road", 8)
+    for name in ("vertices", "triangles", "tri_class", "tri_instance", "tri_landmark"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert a.landmarks.approx_equal(b.landmarks, atol=0)
+    assert not np.array_equal(a.street_x, c.street_x)
+
+
+def test_styles_have_their_character(worlds):
+    def per_km(w, *cats, area=False):
+        c = w.landmarks.attributes["category"]
+        street_km = (
+            np.ptp(w.street_x) * len(w.street_y) + np.ptp(w.street_y) * len(w.street_x)
+        ) / 1e3
+        sel = np.isin(c, [CATEGORIES[k] for k in cats])
+        return (w.landmarks.attributes["extent"][sel].sum() if area else sel.sum()) / street_km
+
+    dt, sub, road = worlds["downtown"], worlds["suburban"], worlds["open-road"]
+    poles = ("street_light", "sign_post", "trunk", "utility_pole")
+    # downtown: many facades, few poles; suburban: trees and poles; open road: sparse
+    assert per_km(dt, "facade", area=True) > 3 * per_km(sub, "facade", area=True)
+    assert per_km(dt, *poles) < 0.6 * per_km(sub, *poles)
+    assert per_km(sub, "trunk") > 3 * per_km(dt, "trunk")
+    assert per_km(road, "facade", area=True) < 0.05 * per_km(dt, "facade", area=True)
+    assert per_km(road, "utility_pole") > 5
+    for w in worlds.values():
+        assert set(np.unique(w.tri_class).tolist()) <= CLASSES
+        assert np.all(w.tri_instance[w.tri_class == ROAD] == 0)
+        radius = w.landmarks.attributes["radius"][w.landmarks.types == 1]
+        height = w.landmarks.attributes["extent"][w.landmarks.types == 1]
+        assert radius.min() >= 0.03 and radius.max() <= 0.3
+        assert height.min() >= 2.0 and height.max() <= 11.0
+
+
+def test_ground_is_gently_sloped_and_planar_patches(worlds):
+    w = worlds["suburban"]
+    g = w.ground_gradient(np.linspace(-150, 150, 301), np.linspace(-150, 150, 301))
+    assert np.abs(g).max() <= w.config.max_slope + 1e-12
+    assert np.abs(g).max() > 0.2 * w.config.max_slope  # not flat
+    ground = w.landmarks.attributes["category"] == CATEGORIES["ground"]
+    normals = w.landmarks.directions[ground]
+    assert np.all(normals[:, 2] > np.cos(np.deg2rad(3.0)))
+
+
+# ---- rays vs. ground truth ------------------------------------------------------------------
+@pytest.mark.parametrize("style", ["downtown", "suburban", "open-road"])
+def test_points_lie_on_their_gt_landmarks(worlds, scans, style):
+    w = worlds[style]
+    T, pts, labels, lm = scans[style]
+    P = transform_points(T, pts[:, :3])
+    L = w.landmarks
+    on = lm >= 0
+    d = P[on] - L.anchors[lm[on]]
+    u = L.directions[lm[on]]
+    t = L.types[lm[on]]
+    # planes: facades, walls, fences, ground patches within noise (5 sigma) of their GT plane
+    dist = np.abs(np.einsum("ij,ij->i", d[t == 2], u[t == 2]))
+    assert (t == 2).sum() > 10_000
+    assert dist.max() < 0.1 and np.median(dist) < 0.02
+    # poles: within radius + noise + facet error of the GT axis, and within its extent
+    dl, ul = d[t == 1], u[t == 1]
+    along = np.einsum("ij,ij->i", dl, ul)
+    radial = np.linalg.norm(dl - along[:, None] * ul, axis=1)
+    r = L.attributes["radius"][lm[on]][t == 1]
+    ext = L.attributes["extent"][lm[on]][t == 1]
+    assert (t == 1).sum() > 100
+    assert np.all(np.abs(radial - r) < 0.1)
+    assert np.all(np.abs(along) <= ext / 2 + 0.1)
+    # every point on a GT pole carries a pole-like class; most pole/trunk points are on GT poles
+    cls = labels & 0xFFFF
+    assert set(np.unique(cls[on][t == 1]).tolist()) <= {POLE, TRUNK}
+    polelike = np.isin(cls, [POLE, TRUNK])
+    assert np.mean(lm[polelike] >= 0) > 0.5
+
+
+def test_pca_fits_of_visible_gt_landmarks_recover_them(worlds, scans):
+    w = worlds["suburban"]
+    T, pts, _, lm = scans["suburban"]
+    vis = gt_landmarks_in_scan(w, lm, T, min_points=40)
+    assert vis.counts()["lines"] >= 3 and vis.counts()["planes"] >= 10
+    checked = 0
+    for k in range(len(vis)):
+        gid = int(vis.attributes["gt_id"][k])
+        sup = pts[lm == gid, :3]
+        fit, _ = fit_landmark(sup, int(vis.types[k]))
+        B = fit.basis
+        u = B[:, 0] if B.shape[1] == 1 else np.cross(B[:, 0], B[:, 1])
+        ang = np.degrees(np.arccos(min(1.0, abs(float(u @ vis.directions[k])))))
+        if vis.types[k] == 2:
+            assert ang < 1.5, (gid, ang)
+            assert abs(float(vis.directions[k] @ (fit.anchor - vis.anchors[k]))) < 0.03
+        else:
+            assert ang < 5.0, (gid, ang)
+            off = fit.anchor - vis.anchors[k]
+            off -= (off @ vis.directions[k]) * vis.directions[k]
+            assert np.linalg.norm(off) < 0.1 + vis.attributes["radius"][k]
+        checked += 1
+    assert checked >= 13
+
+
+# ---- sensor -----------------------------------------------------------------------------------
+@pytest.mark.parametrize("name", sorted(PROFILES))
+def test_range_limits_and_beams(worlds, name):
+    prof = get_profile(name)
+    w = worlds["open-road"]
+    T = plan_route(w, 5, 1).T_world_lidar[2]
+    pts, labels = render_scan(w, T, prof, 1)
+    r = np.linalg.norm(pts[:, :3].astype(float), axis=1)
+    assert r.min() >= prof.min_range - 5 * prof.range_noise_std
+    assert r.max() <= prof.max_range + 5 * prof.range_noise_std
+    assert r.max() > 0.5 * prof.max_range  # the flat open road is seen far away
+    elev = np.degrees(np.arcsin(pts[:, 2] / r))
+    beams = prof.beam_elevations_deg()
+    nearest = np.abs(elev[:, None] - beams[None]).min(axis=1)
+    assert nearest.max() < 1e-3  # noise is along the ray: every point keeps its beam
+    ring = np.abs(elev[:, None] - beams[None]).argmin(axis=1)
+    per_ring = np.bincount(ring, minlength=prof.n_beams)
+    assert len(beams) == prof.n_beams and per_ring.max() <= prof.n_columns
+    assert len(pts) <= prof.n_beams * prof.n_columns
+    assert pts.dtype == np.float32 and labels.dtype == np.uint32
+    assert 0.0 <= pts[:, 3].min() and pts[:, 3].max() <= 1.0 and pts[:, 3].std() > 0.02
+
+
+def test_hdl64_profile_matches_the_spec():
+    p = get_profile("hdl64")
+    el = p.beam_elevations_deg()
+    assert p.n_beams == 64 and el.max() == pytest.approx(2.0) and el.min() == pytest.approx(-24.9)
+    assert 0.1 <= p.azimuth_step_deg <= 0.2 and p.max_range == 120.0
+    assert p.range_noise_std == pytest.approx(0.02)
+
+
+def test_noise_and_dropout_statistics(worlds):
+    w = worlds["downtown"]
+    T = plan_route(w, 5, 0).T_world_lidar[2]
+    clean = get_profile("hdl64").model_copy(update={"range_noise_std": 0.0, "dropout_prob": 0.0})
+    noisy = get_profile("hdl64").model_copy(update={"dropout_prob": 0.1})
+    a, _ = render_scan(w, T, clean, 0)
+    b, _ = render_scan(w, T, noisy, 0)
+    assert 0.85 < len(b) / len(a) < 0.95
+    # same rays: compare ranges of the points both kept (matched by direction)
+    da = a[:, :3] / np.linalg.norm(a[:, :3], axis=1, keepdims=True)
+    db = b[:, :3] / np.linalg.norm(b[:, :3], axis=1, keepdims=True)
+    key = lambda d: np.round(d * 1e4).astype(np.int64) @ np.array([1, 10**5, 10**10])  # noqa: E731
+    _, ia, ib = np.intersect1d(key(da), key(db), return_indices=True)
+    dr = np.linalg.norm(b[ib, :3], axis=1) - np.linalg.norm(a[ia, :3], axis=1)
+    assert abs(dr.mean()) < 0.002 and 0.017 < dr.std() < 0.023
+
+
+# ---- KITTI layout, determinism, poses -------------------------------------------------------
+def _read_rows(path: Path) -> np.ndarray:
+    return np.array([[float(v) for v in ln.split()] for ln in path.read_text().splitlines()])
+
+
+def test_kitti_layout_is_written_and_readable(dataset):
+    out, _ = dataset
+    bins = sorted((out / "velodyne").glob("*.bin"))
+    labs = sorted((out / "labels").glob("*.label"))
+    assert [p.name for p in bins] == [f"{i:06d}.bin" for i in range(8)]
+    assert [p.stem for p in labs] == [p.stem for p in bins]
+    for b, lab in zip(bins, labs, strict=True):
+        pts = np.fromfile(b, dtype=np.float32).reshape(-1, 4)
+        labels = np.fromfile(lab, dtype=np.uint32)
+        assert len(pts) == len(labels) > 50_000
+        assert set(np.unique(labels & 0xFFFF).tolist()) <= CLASSES
+    poses = _read_rows(out / "poses.txt")
+    assert poses.shape == (8, 12)
+    calib = (out / "calib.txt").read_text().split()
+    assert calib[0] == "Tr:" and len(calib) == 13
+    Tr = np.vstack([np.array(calib[1:], float).reshape(3, 4), [0, 0, 0, 1]])
+    assert np.allclose(Tr, KITTI00_TR, atol=0)
+    times = _read_rows(out / "times.txt")[:, 0]
+    assert np.allclose(np.diff(times), 0.1)
+    meta = json.loads((out / "sim_meta.json").read_text())
+    assert meta["seed"] == 5 and meta["style"] == "open-road" and meta["n_scans"] == 8
+    gt = LandmarkSet.load(out / "landmarks_gt.npz")
+    assert gt.approx_equal(build_world("open-road", 5).landmarks, atol=1e-9)
+
+
+def test_poses_recover_the_lidar_trajectory(dataset):
+    out, _ = dataset
+    P = np.zeros((8, 4, 4))
+    P[:, :3] = _read_rows(out / "poses.txt").reshape(-1, 3, 4)
+    P[:, 3, 3] = 1
+    calib = (out / "calib.txt").read_text().split()
+    Tr = np.vstack([np.array(calib[1:], float).reshape(3, 4), [0, 0, 0, 1]])
+    U, _, Vt = np.linalg.svd(Tr[:3, :3])
+    Tr[:3, :3] = U @ Vt  # what a careful reader does with printed rotations
+    T_rec = np.linalg.inv(Tr) @ P @ Tr
+    T_true = plan_route(build_world("open-road", 5), 8, 5).T_world_lidar
+    assert np.abs(T_rec - T_true).max() < 1e-8
+    steps = np.linalg.norm(np.diff(T_true[:, :3, 3], axis=0), axis=1)
+    assert np.all((steps > 0.85) & (steps < 1.15))
+
+
+def test_scan_ground_truth_matches_the_scan(dataset):
+    out, _ = dataset
+    T = plan_route(build_world("open-road", 5), 8, 5).T_world_lidar[4]
+    vis = scan_ground_truth(out, 4, T, min_points=20)
+    assert len(vis) >= 3 and np.all(vis.attributes["support"] >= 20)
+    pts = np.fromfile(out / "velodyne" / "000004.bin", dtype=np.float32).reshape(-1, 4)
+    # every visible GT plane has >= 20 scan points within 10 cm of it (in the LiDAR frame)
+    for k in np.flatnonzero(vis.types == 2):
+        d = np.abs((pts[:, :3] - vis.anchors[k]) @ vis.directions[k])
+        assert np.sum(d < 0.1) >= 20
+
+
+def test_same_seed_gives_identical_bytes(dataset, tmp_path):
+    out, elapsed = dataset
+    again = simulate_dataset(tmp_path / "again", style="open-road", seed=5, n_scans=8)
+    files = [
+        p.relative_to(out) for p in sorted(out.rglob("*")) if p.is_file() and p.suffix != ".npz"
+    ]
+    assert len(files) == 2 * 8 + 4
+    for f in files:
+        assert (out / f).read_bytes() == (again / f).read_bytes(), f
+    other = simulate_dataset(tmp_path / "other", style="open-road", seed=6, n_scans=8)
+    assert (out / "velodyne/000000.bin").read_bytes() != (
+        other / "velodyne/000000.bin"
+    ).read_bytes()
+    assert elapsed < 15.0
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_camera0_pose_convention_round_trip(seed):
+    T = random_transform(np.random.default_rng(seed), max_translation=500.0)
+    P = lidar_to_camera_poses(T)[0]
+    Tr = KITTI00_TR
+    assert np.allclose(np.linalg.inv(Tr) @ P @ Tr, T, atol=1e-5)  # with the raw digits
+    assert np.allclose(camera_to_lidar_poses(P)[0], T, atol=1e-9)
+    # a camera pose is the LiDAR pose seen through Tr: same motion, rotated axes
+    assert np.isclose(np.trace(P[:3, :3]), np.trace(T[:3, :3]), atol=1e-9)
+
+
+def test_calib_matches_real_kitti00(shared_data):
+    calib = (shared_data / "kitti00_first6" / "calib.txt").read_text()
+    line = next(ln for ln in calib.splitlines() if ln.startswith("Tr:"))
+    Tr = np.array(line.split()[1:], float).reshape(3, 4)
+    assert np.allclose(Tr, KITTI00_TR[:3], atol=1e-15)
+
+
+# ---- trajectories, scan pair, suites, errors --------------------------------------------------
+@pytest.mark.parametrize("style,seed", [("downtown", 1), ("suburban", 1), ("open-road", 1)])
+def test_routes_have_revisits_of_all_rotations(worlds, style, seed):
+    w = build_world(style, seed)
+    traj = plan_route(w, 300, seed)
+    places, pairs, dyaw = revisit_pairs(traj.T_world_lidar)
+    assert len(places) == pytest.approx(150, abs=3)
+    p = traj.positions
+    dist = np.linalg.norm(p[pairs[:, 0]] - p[pairs[:, 1]], axis=1)
+    assert np.all(dist < 16.0) and np.all(np.abs(np.diff(traj.arc_length[pairs], axis=1)) > 50)
+    assert len(pairs) >= 200
+    assert (
+        np.sum(dyaw > 150) >= 20
+        and np.sum(dyaw < 30) >= 20
+        and np.sum((dyaw > 60) & (dyaw < 120)) >= 5
+    )
+    assert dist.max() > 12.0
+    # revisits in other lanes: same-direction pairs whose lateral offset exceeds a lane width
+    same = pairs[dyaw < 20]
+    head = traj.T_world_lidar[same[:, 0], :3, 0]
+    off = p[same[:, 1]] - p[same[:, 0]]
+    lateral = np.linalg.norm(off - np.einsum("ij,ij->i", off, head)[:, None] * head, axis=1)
+    assert lateral.max() > 0.8 * w.config.lane_width
+
+
+def test_scan_pair_for_the_demo():
+    t = time.perf_counter()
+    d = simulate_scan_pair("downtown", seed=0, yaw_deg=180, offset_m=14)
+    assert time.perf_counter() - t < 10.0
+    Ta, Tb = d["T_world_lidar"]
+    T_ab = d["T_a_b"]
+    assert np.allclose(T_ab, invert(Ta) @ Tb)
+    ang = np.degrees(np.arccos(np.clip((np.trace(T_ab[:3, :3]) - 1) / 2, -1, 1)))
+    assert ang == pytest.approx(180.0, abs=3.0)
+    assert np.linalg.norm(T_ab[:3, 3]) == pytest.approx(14.0, abs=0.2)
+    va, vb = d["visible_gt"]
+    common = np.intersect1d(va.attributes["gt_id"], vb.attributes["gt_id"])
+    assert len(common) >= 10
+    assert va.counts()["lines"] >= 2 and va.counts()["planes"] >= 10
+    # the visible GT of B, moved into A's frame, is A's visible GT for the shared landmarks
+    gid_a = {int(g): k for k, g in enumerate(va.attributes["gt_id"])}
+    vb_in_a = vb.transform(T_ab)
+    for k, g in enumerate(vb.attributes["gt_id"]):
+        if int(g) in gid_a:
+            assert np.allclose(vb_in_a.anchors[k], va.anchors[gid_a[int(g)]], atol=1e-6)
+
+
+def test_suites_are_three_distinct_named_datasets():
+    assert set(SUITES) == {"sim-downtown", "sim-suburban", "sim-openroad"}
+    assert len({s.style for s in SUITES.values()}) == 3
+    for s in SUITES.values():
+        assert 100 <= s.n_scans <= 600
+        world_preset(s.style)
+        get_profile(s.sensor)
+
+
+def test_bad_inputs_raise_clear_errors(worlds, tmp_path):
+    with pytest.raises(InvalidInputError, match="style"):
+        build_world("moon-base", 0)
+    with pytest.raises(InvalidInputError, match="sensor"):
+        get_profile("hdl32")
+    with pytest.raises(InvalidInputError):
+        plan_route(worlds["downtown"], 0)
+    with pytest.raises(InvalidInputError):
+        render_scan(worlds["downtown"], np.diag([1.0, 1.0, 2.0, 1.0]))
+    with pytest.raises(InvalidInputError):
+        simulate_dataset(tmp_path / "x", n_scans=0)
+    with pytest.raises(InvalidInputError):
+        simulate_scan_pair(offset_m=100.0)
