@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.lidar.io import read_bin, read_label
 
 Array = NDArray[np.float64]
 
@@ -69,6 +70,10 @@ class Dataset(Protocol):
         ...
 
     def scan_path(self, i: int) -> Path: ...
+
+    def label_path(self, i: int) -> Path | None:
+        """Label file of scan i, or None (no labels); part of the landmark-cache key."""
+        ...
 
 
 class ScanSequence:
@@ -154,44 +159,13 @@ class ScanSequence:
 
 # ---- readers of the files the loaders share ---------------------------------------------
 def read_kitti_bin(path: Path) -> NDArray[np.float32]:
-    """KITTI .bin scan -> (N, 4) float32 via :mod:`graffmatch.lidar.io` when present."""
-    try:
-        from graffmatch.lidar.io import read_points
-    except ImportError:  # the lidar layer is written in parallel; keep a fallback
-        return _read_bin_fallback(path)
-    pts = np.asarray(read_points(path), dtype=np.float32)
-    if pts.ndim != 2 or pts.shape[1] not in (3, 4):
-        raise MalformedFileError(f"{path}: expected (N, 4) points, got {pts.shape}")
-    if pts.shape[1] == 3:
-        pts = np.concatenate([pts, np.zeros((len(pts), 1), np.float32)], axis=1)
-    return pts
+    """KITTI .bin scan -> (N, 4) float32 (the front end's reader: one parser in the code base)."""
+    return read_bin(path)
 
 
 def read_kitti_labels(path: Path) -> NDArray[np.uint32]:
-    """SemanticKITTI .label file -> (N,) uint32 via :mod:`graffmatch.lidar.io` when present."""
-    try:
-        from graffmatch.lidar.io import read_labels
-    except ImportError:
-        return _read_label_fallback(path)
-    return np.asarray(read_labels(path), dtype=np.uint32)
-
-
-def _read_bin_fallback(path: Path) -> NDArray[np.float32]:
-    path = Path(path)
-    if not path.is_file():
-        raise InvalidInputError(f"scan file not found: {path}")
-    raw = np.fromfile(path, dtype=np.float32)
-    if raw.size % 4:
-        raise MalformedFileError(f"{path}: size is not a multiple of 16 bytes (x y z i float32)")
-    return raw.reshape(-1, 4)
-
-
-def _read_label_fallback(path: Path) -> NDArray[np.uint32]:
-    path = Path(path)
-    if not path.is_file():
-        raise InvalidInputError(f"label file not found: {path}")
-    raw = np.fromfile(path, dtype=np.uint32)
-    return raw
+    """SemanticKITTI .label file -> (N,) uint32 (class in the low 16 bits)."""
+    return read_label(path)
 
 
 def orthonormalize(T: Array) -> Array:

@@ -20,14 +20,11 @@ the evaluation runner iterates over it.
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
-import multiprocessing
 import os
 import time
 import warnings
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,9 +38,11 @@ from scipy.spatial import cKDTree
 from graffmatch.association.putative import count_all_to_all
 from graffmatch.datasets.base import Dataset
 from graffmatch.errors import DegenerateGeometryError, InvalidInputError, MalformedFileError
+from graffmatch.evaluation.executors import LocalProcessExecutor, SerialExecutor
 from graffmatch.geometry.distance import cross_distances
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.geometry.transforms import invert, rotation_error_deg, transform_errors
+from graffmatch.lidar.cache import LandmarkCache
 from graffmatch.lidar.extractor import LandmarkExtractor, LandmarkExtractorConfig
 
 FORMAT_NAME = "graffmatch-loop-closures"
@@ -256,12 +255,6 @@ def _landmark_file(out_dir: Path, scan_index: int) -> Path:
     return out_dir / LANDMARK_DIR / f"{scan_index:06d}.npz"
 
 
-def _cache_key(path: Path, extractor_hash: str, use_labels: bool, store_points: bool) -> str:
-    st = path.stat()
-    raw = f"{path.resolve()}|{st.st_size}|{st.st_mtime_ns}|{extractor_hash}|{use_labels}|{store_points}"
-    return hashlib.sha256(raw.encode()).hexdigest()[:20]
-
-
 def _extract_one(
     dataset: Dataset, scan_index: int, config: LoopClosureConfig, out_file: str
 ) -> tuple[int, dict[str, int], float]:
@@ -275,6 +268,10 @@ def _extract_one(
         ls = extractor.extract(scan.points, labels)
     ls.save(out_file, include_points=config.store_support_points)
     return scan_index, ls.counts(), time.perf_counter() - t0
+
+
+def _extract_star(args: tuple[Dataset, int, LoopClosureConfig, str]) -> tuple[int, dict, float]:
+    return _extract_one(*args)
 
 
 def extract_place_landmarks(
@@ -295,10 +292,16 @@ def extract_place_landmarks(
         cache: dict[str, str] = json.loads(index_file.read_text()) if index_file.is_file() else {}
     except json.JSONDecodeError:
         cache = {}
-    ex_hash = config.extractor.config_hash()
+    # The key logic is the front end's (scan and label stamps, extractor config, points).
+    keyer = LandmarkCache(
+        out_dir / LANDMARK_DIR,
+        LandmarkExtractor(config.extractor),
+        include_points=config.store_support_points,
+    )
     keys = {
-        int(i): _cache_key(
-            dataset.scan_path(int(i)), ex_hash, config.use_labels, config.store_support_points
+        int(i): keyer.key(
+            dataset.scan_path(int(i)),
+            dataset.label_path(int(i)) if config.use_labels else None,
         )
         for i in scan_indices
     }
@@ -310,24 +313,24 @@ def extract_place_landmarks(
     if todo:
         with _progress(progress) as bar:
             task = bar.add_task(f"landmarks ({getattr(dataset, 'name', 'dataset')})", total=len(todo))
-            args = [(i, str(_landmark_file(out_dir, i))) for i in todo]
+            args = [(dataset, i, config, str(_landmark_file(out_dir, i))) for i in todo]
+            executor: Any
             if config.workers == 1:
-                results: Iterator = (_extract_one(dataset, i, config, f) for i, f in args)
-                for i, _, dt in results:
+                executor = SerialExecutor()
+            else:
+                # forkserver (the executors' default): the rich progress thread makes fork()
+                # unsafe, and the server imports the front end (Open3D) once for all workers.
+                executor = LocalProcessExecutor(
+                    workers=config.workers, preload=("graffmatch.evaluation.loop_closures",)
+                )
+            try:
+                for _, (i, _, dt) in executor.imap_unordered(_extract_star, args):
                     seconds += dt
                     cache[str(i)] = keys[i]
                     bar.advance(task)
-            else:
-                # spawn: Open3D's thread pools do not survive fork() reliably.
-                ctx = multiprocessing.get_context("spawn")
-                with ProcessPoolExecutor(max_workers=config.workers, mp_context=ctx) as pool:
-                    futs = [pool.submit(_extract_one, dataset, i, config, f) for i, f in args]
-                    for fut in futs:
-                        i, _, dt = fut.result()
-                        seconds += dt
-                        cache[str(i)] = keys[i]
-                        bar.advance(task)
-        index_file.write_text(json.dumps(cache, indent=0, sort_keys=True))
+            finally:
+                executor.close()
+                index_file.write_text(json.dumps(cache, indent=0, sort_keys=True))
     stats["extract_seconds"] = seconds
     return stats
 
