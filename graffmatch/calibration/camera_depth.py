@@ -33,8 +33,10 @@ class BoardDetectionConfig(BaseModel):
     max_boards: int = Field(20, ge=1, description="Stop after this many boards.")
     subpix_window: int = Field(5, ge=1, description="cornerSubPix half window [px].")
     detect_max_side: int = Field(
-        2000, ge=200, description="Search corners on an image downscaled to about this size "
-        "(integer factor) [px], then refine them at full resolution."
+        2000,
+        ge=200,
+        description="Search corners on an image downscaled to about this size "
+        "(integer factor) [px], then refine them at full resolution.",
     )
     use_sector_based: bool = Field(
         False,
@@ -80,7 +82,11 @@ def _as_gray(image: ArrayLike) -> NDArray[np.uint8]:
     if img.dtype != np.uint8:
         f = img.astype(np.float64)
         lo, hi = np.nanmin(f), np.nanmax(f)
-        img = np.zeros_like(f, np.uint8) if hi <= lo else ((f - lo) / (hi - lo) * 255).astype(np.uint8)
+        img = (
+            np.zeros_like(f, np.uint8)
+            if hi <= lo
+            else ((f - lo) / (hi - lo) * 255).astype(np.uint8)
+        )
     return np.ascontiguousarray(img)
 
 
@@ -91,13 +97,19 @@ def _check_K(K: ArrayLike, name: str) -> Array:
     return K
 
 
-def _find_one(gray: NDArray[np.uint8], size: tuple[int, int], cfg: BoardDetectionConfig) -> Array | None:
+def _find_one(
+    gray: NDArray[np.uint8], size: tuple[int, int], cfg: BoardDetectionConfig
+) -> Array | None:
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
     # Find on a reduced image (the quad search cost grows with pixels, and the final "no more
     # boards" call is the slowest), then refine the corners at full resolution.
-    scale = max(1, int(round(max(gray.shape) / cfg.detect_max_side)))
-    small = gray if scale == 1 else cv2.resize(
-        gray, (gray.shape[1] // scale, gray.shape[0] // scale), interpolation=cv2.INTER_AREA
+    scale = max(1, round(max(gray.shape) / cfg.detect_max_side))
+    small = (
+        gray
+        if scale == 1
+        else cv2.resize(
+            gray, (gray.shape[1] // scale, gray.shape[0] // scale), interpolation=cv2.INTER_AREA
+        )
     )
     ok, corners = cv2.findChessboardCorners(small, size, flags=flags)
     if ok:
@@ -175,7 +187,9 @@ def detect_board_planes(
     return found
 
 
-def boards_to_landmarks(detections: list[BoardDetection], board: Chessboard | None = None) -> LandmarkSet:
+def boards_to_landmarks(
+    detections: list[BoardDetection], board: Chessboard | None = None
+) -> LandmarkSet:
     """Plane landmarks (camera frame) of detected boards; extent = physical board area if known."""
     n = len(detections)
     if n == 0:
@@ -190,7 +204,9 @@ def boards_to_landmarks(detections: list[BoardDetection], board: Chessboard | No
     return LandmarkSet.from_arrays(np.full(n, LandmarkType.PLANE), normals, anchors, attrs)
 
 
-def depth_to_points(depth: ArrayLike, K_depth: ArrayLike, step: int = 1, max_depth: float = 10.0) -> Array:
+def depth_to_points(
+    depth: ArrayLike, K_depth: ArrayLike, step: int = 1, max_depth: float = 10.0
+) -> Array:
     """Back-project a z-depth image [m] (0 / NaN = no return) to (N, 3) points in its frame."""
     D = np.asarray(depth, dtype=np.float64)
     if D.ndim != 2 or D.size == 0:

@@ -104,7 +104,7 @@ class CalibrationResult:
 
     @property
     def n_matched(self) -> int:
-        return int(len(self.associations))
+        return len(self.associations)
 
     def raise_if_invalid(self) -> CalibrationResult:
         if not self.valid:
@@ -119,7 +119,10 @@ class CalibrationResult:
             "kappa": float(self.kappa),
             "residual_angle_deg": self.residual_angle_deg.tolist(),
             "residual_offset_m": self.residual_offset.tolist(),
-            "n_planes": {self.source_name: self.n_planes_source, self.target_name: self.n_planes_target},
+            "n_planes": {
+                self.source_name: self.n_planes_source,
+                self.target_name: self.n_planes_target,
+            },
             "n_graffmatch": self.n_graffmatch,
             "valid": self.valid,
             "degenerate": self.degenerate,
@@ -143,7 +146,10 @@ class CalibrationResult:
 
 
 def plane_residuals(
-    source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64], T_target_source: Array
+    source: LandmarkSet,
+    target: LandmarkSet,
+    associations: NDArray[np.int64],
+    T_target_source: Array,
 ) -> tuple[Array, Array]:
     """Per associated pair: normal angle [deg] and mean anchor-to-other-plane distance [m]."""
     if len(associations) == 0:
@@ -213,12 +219,12 @@ def calibrate_planes(
         raise DegenerateGeometryError(f"GraffMatch could not match the planes: {exc}") from exc
     t1 = time.perf_counter()
     assoc = np.asarray(match.associations, dtype=np.int64).reshape(-1, 2)
+    if len(assoc) == 0 or match.T_target_source is None:
+        raise DegenerateGeometryError(f"GraffMatch found no usable plane matches ({match.message})")
     T = np.asarray(match.T_target_source, dtype=float)
     kappa = float(match.kappa)
     degenerate = bool(match.degenerate)
     n_gm = len(assoc)
-    if len(assoc) == 0:
-        raise DegenerateGeometryError(f"GraffMatch found no consistent plane matches ({match.message})")
     if cfg.reassociate and not degenerate:
         extra = _reassociate(source, target, T, cfg)
         if len(extra) >= len(assoc):

@@ -75,7 +75,9 @@ class Chessboard:
     def outline(self) -> Array:
         """(4, 3) corners of the physical board in the board frame."""
         w, h = self.size
-        return np.array([[-w / 2, -h / 2, 0], [w / 2, -h / 2, 0], [w / 2, h / 2, 0], [-w / 2, h / 2, 0]])
+        return np.array(
+            [[-w / 2, -h / 2, 0], [w / 2, -h / 2, 0], [w / 2, h / 2, 0], [-w / 2, h / 2, 0]]
+        )
 
     def black_squares(self) -> Array:
         """(n, 4, 3) corners of the black squares in the board frame."""
@@ -109,9 +111,10 @@ class CalibrationScene:
     def board_outlines_world(self) -> Array:
         """(n, 4, 3) physical board corners in the world frame."""
         out = self.board.outline()
-        return np.einsum("nij,kj->nki", self.T_world_boards[:, :3, :3], out) + self.T_world_boards[
-            :, None, :3, 3
-        ]
+        return (
+            np.einsum("nij,kj->nki", self.T_world_boards[:, :3, :3], out)
+            + self.T_world_boards[:, None, :3, 3]
+        )
 
     def board_planes(self, T_frame_world: Array | None = None) -> LandmarkSet:
         """Ground-truth board planes (anchor = board centre), in ``frame`` (default world)."""
@@ -131,9 +134,7 @@ class CalibrationScene:
         scene = o3d.t.geometry.RaycastingScene()
         tris = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32)
         for quad in self.board_outlines_world():
-            scene.add_triangles(
-                o3d.core.Tensor(quad.astype(np.float32)), o3d.core.Tensor(tris)
-            )
+            scene.add_triangles(o3d.core.Tensor(quad.astype(np.float32)), o3d.core.Tensor(tris))
         ground_id = -1
         if self.ground_z is not None:
             s = self.ground_half_size
@@ -169,9 +170,9 @@ class LidarModel:
         el = np.radians(np.linspace(self.v_fov_deg[0], self.v_fov_deg[1], self.n_beams))
         az = np.radians(np.arange(0.0, 360.0, self.h_res_deg))
         E, A = np.meshgrid(el, az, indexing="ij")
-        return np.stack(
-            [np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], axis=-1
-        ).reshape(-1, 3)
+        return np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], axis=-1).reshape(
+            -1, 3
+        )
 
 
 VLP64 = LidarModel()
@@ -383,8 +384,10 @@ def make_lidar_lidar_scenario(
     bw = max(board.size)
     T_world_a = make_transform(np.eye(3), [0.0, 0.0, 0.0])
     # B: any yaw (GraffMatch needs no initial guess), some roll/pitch, up to ~1 m away.
-    R_b = rot_z(rng.uniform(-np.pi, np.pi)) @ rot_x(rng.uniform(-0.25, 0.25)) @ rot_y(
-        rng.uniform(-0.25, 0.25)
+    R_b = (
+        rot_z(rng.uniform(-np.pi, np.pi))
+        @ rot_x(rng.uniform(-0.25, 0.25))
+        @ rot_y(rng.uniform(-0.25, 0.25))
     )
     d = rng.normal(size=3)
     t_b = d / np.linalg.norm(d) * rng.uniform(0.3, max_extrinsic_translation)
@@ -496,7 +499,12 @@ def make_camera_depth_scenario(
                 continue
             gap = 0.06 * camera.width
             if any(
-                not (box[2] + gap < o[0] or o[2] + gap < box[0] or box[3] + gap < o[1] or o[3] + gap < box[1])
+                not (
+                    box[2] + gap < o[0]
+                    or o[2] + gap < box[0]
+                    or box[3] + gap < o[1]
+                    or o[3] + gap < box[1]
+                )
                 for o in boxes
             ):
                 continue
