@@ -1,0 +1,1 @@
+"""Association layer: putative associations, the consistency graph and the CLIPPER solver."""

@@ -1,0 +1,231 @@
+"""GraffMatch in one call: ``GraffMatcher(config).match(source, target) -> MatchResult``.
+
+Pipeline (paper, Sec. Method): intra-scan invariant distance matrices (once per scan) ->
+all-to-all same-type putative associations -> sparse consistency graph -> CLIPPER densest
+clique -> closed-form line/plane registration with its condition number.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from graffmatch.association.clipper import ClipperConfig, solve_clipper
+from graffmatch.association.consistency_graph import build_consistency_graph
+from graffmatch.errors import DegenerateGeometryError, InvalidInputError
+from graffmatch.geometry.distance import pairwise_distances
+from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
+from graffmatch.registration.closed_form import register_landmarks
+
+TypeName = Literal["point", "line", "plane"]
+_TYPE_IDS = {"point": LandmarkType.POINT, "line": LandmarkType.LINE, "plane": LandmarkType.PLANE}
+
+
+class GraffMatchConfig(BaseModel):
+    """Matcher parameters; defaults are the paper's (eps 0.2, sigma 0.05, rho 40 m)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    rho: float = Field(40.0, gt=0, description="scale of the affine part [m] (Sec. Selection of Scaling Parameter)")
+    epsilon: float = Field(0.2, gt=0, description="consistency threshold on |d_i - d_j| [rad]")
+    sigma: float = Field(0.05, gt=0, description="edge weight exp(-c^2 / 2 sigma^2) [rad]")
+    variant: Literal["invariant", "naive"] = Field(
+        "invariant", description="invariant: shift by the first anchor (Prop. 1); naive: no shift (ablation)"
+    )
+    landmark_types: list[TypeName] = Field(
+        default_factory=lambda: ["point", "line", "plane"],
+        description="landmark types used (e.g. ['line'] for the line-only variant)",
+    )
+    solver: ClipperConfig = Field(default_factory=ClipperConfig)
+    kappa_max: float = Field(1e3, gt=1, description="condition number above which the estimate is degenerate")
+    min_associations: int = Field(3, ge=1, description="fewest selected associations for a valid result")
+    weighted_registration: bool = Field(
+        True, description="weight the least squares by the solver's u entries"
+    )
+
+
+@dataclass
+class MatchResult:
+    """Outcome of one match. ``T_target_source`` maps source-frame points into the target frame.
+
+    ``valid`` is False (with ``message`` saying why) when too few associations were found or the
+    registration is degenerate; ``T_target_source`` is then the best effort, or None when no
+    estimate exists. Never a silent identity.
+    """
+
+    T_target_source: NDArray[np.float64] | None
+    associations: NDArray[np.int64]
+    weights: NDArray[np.float64]
+    score: float
+    kappa: float
+    degenerate: bool
+    valid: bool
+    message: str
+    timings: dict[str, float] = field(default_factory=dict)
+    n_putative: int = 0
+    n_edges: int = 0
+    info: dict = field(default_factory=dict)
+
+    def __repr__(self) -> str:
+        T = "None" if self.T_target_source is None else np.array2string(
+            self.T_target_source, precision=3, suppress_small=True, separator=", "
+        ).replace("\n", "")
+        ms = ", ".join(f"{k}={v * 1e3:.1f}ms" for k, v in self.timings.items())
+        return (
+            f"MatchResult(valid={self.valid}, associations={len(self.associations)}, "
+            f"score={self.score:.2f}, kappa={self.kappa:.3g}, degenerate={self.degenerate}, "
+            f"putative={self.n_putative}, edges={self.n_edges}, message={self.message!r},\n"
+            f"  T_target_source={T},\n  timings: {ms})"
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "T_target_source": None if self.T_target_source is None else self.T_target_source.tolist(),
+            "associations": self.associations.tolist(),
+            "weights": self.weights.tolist(),
+            "score": self.score,
+            "kappa": self.kappa if np.isfinite(self.kappa) else None,
+            "degenerate": self.degenerate,
+            "valid": self.valid,
+            "message": self.message,
+            "timings": self.timings,
+            "n_putative": self.n_putative,
+            "n_edges": self.n_edges,
+        }
+
+
+def _filter_types(ls: LandmarkSet, types: list[TypeName]) -> tuple[LandmarkSet, NDArray[np.int64]]:
+    keep = np.flatnonzero(np.isin(ls.types, [int(_TYPE_IDS[t]) for t in types]))
+    if keep.size == len(ls):
+        return ls, keep
+    return ls[keep], keep
+
+
+def _validate_input(ls: LandmarkSet, name: str) -> None:
+    if not isinstance(ls, LandmarkSet):
+        raise InvalidInputError(f"{name} must be a LandmarkSet, got {type(ls).__name__}")
+    if len(ls) < 2:
+        raise InvalidInputError(f"{name} has {len(ls)} landmark(s); at least 2 are needed to match")
+
+
+def match_with_distances(
+    source: LandmarkSet,
+    target: LandmarkSet,
+    D_source: ArrayLike,
+    D_target: ArrayLike,
+    config: GraffMatchConfig | None = None,
+    associations: ArrayLike | None = None,
+    timings: dict[str, float] | None = None,
+) -> MatchResult:
+    """Graph + solver + registration for any pair of intra-scan distance matrices.
+
+    GraffMatch passes d_Graff matrices; CLIPPER-R^n or CLIPPER-CP pass Euclidean ones.
+    """
+    cfg = config or GraffMatchConfig()
+    timings = dict(timings or {})
+    t0 = time.perf_counter()
+    graph = build_consistency_graph(
+        D_source, D_target, associations, cfg.epsilon, cfg.sigma,
+        types_i=source.types, types_j=target.types,
+    )
+    t1 = time.perf_counter()
+    timings["graph"] = t1 - t0
+    sol = solve_clipper(graph.weights, cfg.solver)
+    t2 = time.perf_counter()
+    timings["solver"] = t2 - t1
+    sel = sol.selected
+    assoc = graph.associations[sel]
+    weights = sol.u[sel]
+    common = dict(
+        associations=assoc, weights=weights, score=sol.score, n_putative=graph.m,
+        n_edges=graph.n_edges,
+        info={"solver": repr(sol), "m_after_pruning": sol.info.get("m_after_pruning")},
+    )
+    if len(assoc) == 0:
+        timings["registration"] = 0.0
+        timings["total"] = sum(timings.values())
+        return MatchResult(None, kappa=np.inf, degenerate=True, valid=False,
+                           message="no consistent associations", timings=timings, **common)
+    try:
+        est = register_landmarks(
+            source, target, assoc, weights if cfg.weighted_registration else None, cfg.kappa_max
+        )
+    except DegenerateGeometryError as exc:
+        timings["registration"] = time.perf_counter() - t2
+        timings["total"] = sum(timings.values())
+        return MatchResult(None, kappa=np.inf, degenerate=True, valid=False, message=str(exc),
+                           timings=timings, **common)
+    timings["registration"] = time.perf_counter() - t2
+    timings["total"] = sum(timings.values())
+    problems = []
+    if len(assoc) < cfg.min_associations:
+        problems.append(f"only {len(assoc)} associations (< {cfg.min_associations})")
+    if est.degenerate:
+        problems.append(f"degenerate geometry (kappa={est.kappa:.3g} > {cfg.kappa_max:.3g})")
+    common["info"].update(
+        kappa_rotation=est.kappa_rotation, kappa_translation=est.kappa_translation,
+        rms_offset=est.rms_offset,
+    )
+    return MatchResult(
+        est.T_target_source, kappa=est.kappa, degenerate=est.degenerate, valid=not problems,
+        message="; ".join(problems) or "ok", timings=timings, **common,
+    )
+
+
+class GraffMatcher:
+    """Global, initial-guess-free matching and registration of two landmark sets.
+
+    Example::
+
+        result = GraffMatcher().match(source, target)
+        if result.valid:
+            points_in_target = transform_points(result.T_target_source, source_points)
+    """
+
+    def __init__(self, config: GraffMatchConfig | None = None) -> None:
+        self.config = config or GraffMatchConfig()
+
+    def distance_matrix(self, landmarks: LandmarkSet) -> NDArray[np.float64]:
+        """Intra-scan matrix; cache it per scan when matching one scan against many."""
+        return pairwise_distances(landmarks, self.config.rho, self.config.variant)
+
+    def match(
+        self,
+        source: LandmarkSet,
+        target: LandmarkSet,
+        associations: ArrayLike | None = None,
+    ) -> MatchResult:
+        """Match ``source`` to ``target``; indices in the result refer to the inputs."""
+        _validate_input(source, "source")
+        _validate_input(target, "target")
+        cfg = self.config
+        src, src_idx = _filter_types(source, cfg.landmark_types)
+        tgt, tgt_idx = _filter_types(target, cfg.landmark_types)
+        if associations is not None:
+            A = np.asarray(associations, dtype=np.int64).reshape(-1, 2)
+            # Re-index into the filtered sets.
+            inv_s = np.full(len(source), -1)
+            inv_s[src_idx] = np.arange(len(src_idx))
+            inv_t = np.full(len(target), -1)
+            inv_t[tgt_idx] = np.arange(len(tgt_idx))
+            A = np.stack([inv_s[A[:, 0]], inv_t[A[:, 1]]], 1)
+            associations = A[(A >= 0).all(1)]
+        if len(src) < 2 or len(tgt) < 2:
+            raise InvalidInputError(
+                f"too few landmarks of types {cfg.landmark_types}: source {len(src)}, target {len(tgt)}"
+            )
+        t0 = time.perf_counter()
+        D_s = self.distance_matrix(src)
+        D_t = self.distance_matrix(tgt)
+        timings = {"distances": time.perf_counter() - t0}
+        res = match_with_distances(src, tgt, D_s, D_t, cfg, associations, timings)
+        if len(src_idx) != len(source) or len(tgt_idx) != len(target):
+            res.associations = np.stack(
+                [src_idx[res.associations[:, 0]], tgt_idx[res.associations[:, 1]]], 1
+            ).astype(np.int64).reshape(-1, 2)
+        return res

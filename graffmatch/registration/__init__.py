@@ -1,0 +1,1 @@
+"""Registration layer: closed-form line/plane/point least squares and ICP refinement."""
