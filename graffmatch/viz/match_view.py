@@ -25,6 +25,27 @@ from graffmatch.errors import InvalidInputError
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.geometry.transforms import check_transform, transform_points
 
+#: Runs after plotly has drawn: marks <body> so that a headless browser test can tell a rendered
+#: scene (a WebGL canvas inside the plot) from a page that failed, and records page errors.
+RENDERED_MARKER_JS = """
+(function () {
+  var gd = document.getElementById('{plot_id}');
+  var canvas = gd ? gd.querySelector('canvas') : null;
+  var ok = !!(gd && gd._fullLayout && gd.data && gd.data.length && canvas);
+  document.body.setAttribute('data-graffmatch-rendered', ok ? '1' : '0');
+  document.body.setAttribute('data-graffmatch-traces', gd && gd.data ? gd.data.length : 0);
+  window.addEventListener('error', function (e) {
+    document.body.setAttribute('data-graffmatch-error', String(e.message));
+  });
+})();
+"""
+
+PAGE_STYLE = (
+    '<meta charset="utf-8"><title>GraffMatch match view</title>'
+    "<style>html, body { margin: 0; height: 100%; overflow: hidden; }"
+    " body > div { height: 100%; }</style>"
+)
+
 SOURCE_COLOR = "#1f77b4"
 TARGET_COLOR = "#ff7f0e"
 SOURCE_LANDMARK_COLOR = "#0b3d91"
@@ -75,33 +96,30 @@ def _segments_xyz(starts: np.ndarray, ends: np.ndarray) -> tuple[np.ndarray, ...
     return out[:, 0], out[:, 1], out[:, 2]
 
 
-def _support_uv_ranges(ls: LandmarkSet, idx: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per-landmark min/max of the support points in the basis coordinates (relative to anchor).
+def _support_uv(
+    ls: LandmarkSet, idx: np.ndarray, k: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Support points of landmarks ``idx`` in basis coordinates relative to the anchor.
 
-    Returns (lo, hi) of shape (len(idx), k); NaN rows where a landmark has no support points.
-    Vectorised with ``reduceat`` over the ragged point layout.
+    Returns (has_points (len(idx),) bool, owner (M,) position in ``idx[has]``, uv (M, k),
+    first (len(idx[has]),) start of each group), gathered without Python loops.
     """
-    lo = np.full((len(idx), k), np.nan)
-    hi = np.full((len(idx), k), np.nan)
+    has = np.zeros(len(idx), bool)
+    empty = (has, np.zeros(0, np.int64), np.zeros((0, k)), np.zeros(0, np.int64))
     if ls.points is None or ls.point_offsets is None or len(idx) == 0:
-        return lo, hi
-    starts, ends = ls.point_offsets[idx], ls.point_offsets[idx + 1]
-    counts = ends - starts
-    have = counts > 0
-    if not np.any(have):
-        return lo, hi
-    sel = idx[have]
-    c = counts[have]
+        return empty
+    counts = ls.point_offsets[idx + 1] - ls.point_offsets[idx]
+    has = counts > 0
+    if not np.any(has):
+        return (has, *empty[1:])
+    sel = idx[has]
+    c = counts[has]
+    first = np.concatenate([[0], np.cumsum(c)[:-1]])
     owner = np.repeat(np.arange(len(sel)), c)
-    gather = np.repeat(ls.point_offsets[sel], c) + (
-        np.arange(c.sum()) - np.repeat(np.concatenate([[0], np.cumsum(c)[:-1]]), c)
-    )
+    gather = np.repeat(ls.point_offsets[sel], c) + (np.arange(c.sum()) - np.repeat(first, c))
     P = ls.points[gather].astype(np.float64) - ls.anchors[sel][owner]
     uv = np.einsum("ni,nik->nk", P, ls.bases[sel][owner][:, :, :k])
-    first = np.concatenate([[0], np.cumsum(c)[:-1]])
-    lo[have] = np.minimum.reduceat(uv, first, axis=0)
-    hi[have] = np.maximum.reduceat(uv, first, axis=0)
-    return lo, hi
+    return has, owner, uv, first
 
 
 def pole_segments(ls: LandmarkSet) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -120,9 +138,13 @@ def pole_segments(ls: LandmarkSet) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         half[ok] = ext[ok] / 2
     lo = -half
     hi = half.copy()
-    slo, shi = _support_uv_ranges(ls, idx, 1)
-    ok = np.isfinite(slo[:, 0]) & (shi[:, 0] > slo[:, 0])
-    lo[ok], hi[ok] = slo[ok, 0], shi[ok, 0]
+    has, _, uv, first = _support_uv(ls, idx, 1)
+    if np.any(has):
+        slo = np.minimum.reduceat(uv[:, 0], first)
+        shi = np.maximum.reduceat(uv[:, 0], first)
+        ok = shi > slo
+        pos = np.flatnonzero(has)[ok]
+        lo[pos], hi[pos] = slo[ok], shi[ok]
     return idx, a + lo[:, None] * d, a + hi[:, None] * d
 
 
@@ -146,12 +168,34 @@ def plane_quads(ls: LandmarkSet) -> tuple[np.ndarray, np.ndarray]:
             ok = np.all(np.isfinite(box) & (box > 0), axis=1)
             half[ok] = box[ok] / 2
     lo, hi = -half, half.copy()
-    slo, shi = _support_uv_ranges(ls, idx, 2)
-    ok = np.all(np.isfinite(slo), axis=1) & np.all(shi > slo, axis=1)
-    lo[ok], hi[ok] = slo[ok], shi[ok]
-    u = ls.bases[idx, :, 0]
-    v = ls.bases[idx, :, 1]
+    u = ls.bases[idx, :, 0].copy()
+    v = ls.bases[idx, :, 1].copy()
     a = ls.anchors[idx]
+    has, owner, uv, first = _support_uv(ls, idx, 2)
+    if np.any(has):
+        # Minimum-area rectangle over a 1-degree grid of in-plane angles (vectorised over
+        # points x angles): it orients the patch like its support rather than like the
+        # arbitrary basis, and unlike PCA it is stable for near-square patches.
+        angles = np.deg2rad(np.arange(0.0, 90.0, 1.0))
+        ca, sa = np.cos(angles), np.sin(angles)
+        pu = uv[:, :1] * ca + uv[:, 1:] * sa  # (M, n_angles)
+        pv = -uv[:, :1] * sa + uv[:, 1:] * ca
+        span_u = np.maximum.reduceat(pu, first, axis=0) - np.minimum.reduceat(pu, first, axis=0)
+        span_v = np.maximum.reduceat(pv, first, axis=0) - np.minimum.reduceat(pv, first, axis=0)
+        best = np.argmin(span_u * span_v, axis=1)
+        c, s_ = ca[best], sa[best]
+        rot_uv = np.c_[
+            uv[:, 0] * c[owner] + uv[:, 1] * s_[owner], -uv[:, 0] * s_[owner] + uv[:, 1] * c[owner]
+        ]
+        slo = np.minimum.reduceat(rot_uv, first, axis=0)
+        shi = np.maximum.reduceat(rot_uv, first, axis=0)
+        ok = np.all(shi > slo, axis=1)
+        pos = np.flatnonzero(has)[ok]
+        cu, su = c[ok, None], s_[ok, None]
+        u0, v0 = u[pos].copy(), v[pos].copy()
+        u[pos] = cu * u0 + su * v0
+        v[pos] = -su * u0 + cu * v0
+        lo[pos], hi[pos] = slo[ok], shi[ok]
     corners = np.stack(
         [
             a + lo[:, :1] * u + lo[:, 1:] * v,
@@ -215,7 +259,7 @@ def _landmark_traces(ls: LandmarkSet, who: str, color: str, group: str) -> list:
                 j=j,
                 k=k,
                 color=color,
-                opacity=0.35,
+                opacity=0.25,
                 flatshading=True,
                 name=f"{who} planes ({len(idx)})",
                 legendgroup=group,
@@ -369,6 +413,7 @@ def match_figure(
     max_points: int = 25_000,
     point_size: float = 1.5,
     axis_length: float = 2.0,
+    initial: str = "after",
 ):
     """Build the plotly figure (see :func:`write_match_view`); useful to embed in reports."""
     import plotly.graph_objects as go
@@ -436,7 +481,10 @@ def match_figure(
         add(traces, p)
 
     owner_arr = np.asarray(owner)
-    shown = 0
+    states = {"after": 0, "raw": 1, "side": 2}
+    if initial not in states:
+        raise InvalidInputError(f"initial must be one of {sorted(states)}, got {initial!r}")
+    shown = states[initial]
     for trace, o in zip(fig.data, owner_arr, strict=True):
         trace.visible = bool(o in (-1, shown))
     buttons = [
@@ -491,13 +539,15 @@ def write_match_view(
     title: str = "GraffMatch",
     info: Mapping[str, object] | None = None,
     max_points: int = 25_000,
+    initial: str = "after",
 ) -> Path:
     """Write the interactive match view as ONE self-contained HTML file and return its path.
 
     ``T_target_source`` maps source-frame points into the target frame (the display frame).
     ``associations`` is (k, 2) indices (source, target). ``inlier_mask`` (k,) colours the
     correspondences green/red when the ground truth is known. Points are (N, 3+) arrays in each
-    scan's own frame [m]; at most ``max_points`` of each are drawn.
+    scan's own frame [m]; at most ``max_points`` of each are drawn. ``initial`` picks the
+    state shown first: "after" (aligned), "raw" (before, own frames) or "side" (side by side).
     """
     fig = match_figure(
         source_landmarks,
@@ -510,16 +560,19 @@ def write_match_view(
         title=title,
         info=info,
         max_points=max_points,
+        initial=initial,
     )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.write_html(
-        str(path),
+    html = fig.to_html(
         include_plotlyjs=True,
         full_html=True,
-        auto_open=False,
         config={"displaylogo": False, "responsive": True},
         default_width="100%",
-        default_height="94vh",
+        default_height="100%",
+        post_script=RENDERED_MARKER_JS,
     )
+    # Full-window plot: the plot div is 100% of a body that is 100% of the viewport.
+    html = html.replace("<head>", f"<head>{PAGE_STYLE}", 1)
+    path.write_text(html, encoding="utf-8")
     return path
