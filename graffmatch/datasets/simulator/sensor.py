@@ -76,6 +76,18 @@ def _ray_directions(elev_bytes: bytes, n_columns: int) -> NDArray[np.float32]:
     return d
 
 
+_COLUMNS_CACHE: dict[int, NDArray[np.float32]] = {}
+
+
+def _columns(d: NDArray[np.float32]) -> NDArray[np.float32]:
+    """(3, N) contiguous copy of the cached (N, 3) ray directions."""
+    key = id(d)
+    if key not in _COLUMNS_CACHE:
+        _COLUMNS_CACHE.clear() if len(_COLUMNS_CACHE) > 8 else None
+        _COLUMNS_CACHE[key] = np.ascontiguousarray(d.T)
+    return _COLUMNS_CACHE[key]
+
+
 PROFILES: dict[str, SensorProfile] = {
     "hdl64": SensorProfile(),
     "vlp16": SensorProfile(
@@ -128,6 +140,17 @@ for _cls, _alb in {
     _ALBEDO[_cls] = _alb
 
 
+def _triangle_albedo(world: W.World) -> NDArray[np.float32]:
+    """Per-triangle albedo: the class albedo varied +-15% per object instance (cached)."""
+    cached = world.__dict__.get("_albedo")
+    if cached is None:
+        inst = world.tri_instance.astype(np.uint64)
+        jitter = ((inst * np.uint64(2654435761)) % np.uint64(1000)).astype(np.float32) / 1000.0
+        cached = (_ALBEDO[world.tri_class] * (0.85 + 0.3 * jitter)).astype(np.float32)
+        world.__dict__["_albedo"] = cached
+    return cached
+
+
 def render_scan(
     world: W.World,
     T_world_lidar: NDArray,
@@ -147,28 +170,33 @@ def render_scan(
     T = check_transform(T_world_lidar, "T_world_lidar")
     rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
     d_sensor = prof.ray_directions()
-    R, t = T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
+    R, t = T[:3, :3], T[:3, 3]
     rays = np.empty((len(d_sensor), 6), np.float32)
     rays[:, :3] = t
-    np.matmul(d_sensor, R.T, out=rays[:, 3:])
+    # column-wise rotation: a BLAS matmul with a 3-wide inner dimension is slow (and spins
+    # threads on a loaded machine); nine fused vector ops are ~50x faster here
+    dT = _columns(d_sensor)
+    for k in range(3):
+        rays[:, 3 + k] = R[k, 0] * dT[0] + R[k, 1] * dT[1] + R[k, 2] * dT[2]
     ans = world.scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
     t_hit = ans["t_hit"].numpy()
     prim = ans["primitive_ids"].numpy()
     normals = ans["primitive_normals"].numpy()
     hit = np.isfinite(t_hit) & (t_hit >= prof.min_range) & (t_hit <= prof.max_range)
     idx = np.flatnonzero(hit)
-    cos_inc = np.abs(np.einsum("ij,ij->i", normals[idx], rays[idx, 3:]))
+    nT = normals[idx].T
+    cos_inc = np.abs(nT[0] * rays[idx, 3] + nT[1] * rays[idx, 4] + nT[2] * rays[idx, 5])
     keep = (cos_inc >= prof.grazing_cos) & (rng.random(len(idx)) >= prof.dropout_prob)
     idx, cos_inc = idx[keep], cos_inc[keep]
     r = t_hit[idx] + rng.normal(0.0, prof.range_noise_std, len(idx)).astype(np.float32)
     tri = prim[idx]
     cls = world.tri_class[tri]
     inst = world.tri_instance[tri]
-    albedo = _ALBEDO[cls] * (0.85 + 0.3 * ((inst * 2654435761) % 1000 / 1000.0)).astype(np.float32)
-    inten = albedo * (0.3 + 0.7 * cos_inc) * (1.0 - 0.4 * r / prof.max_range)
+    inten = _triangle_albedo(world)[tri] * (0.3 + 0.7 * cos_inc) * (1.0 - 0.4 * r / prof.max_range)
     inten = inten + rng.normal(0.0, prof.intensity_noise_std, len(idx)).astype(np.float32)
     pts = np.empty((len(idx), 4), np.float32)
-    pts[:, :3] = d_sensor[idx] * r[:, None]
+    dT = dT[:, idx]
+    pts[:, 0], pts[:, 1], pts[:, 2] = dT[0] * r, dT[1] * r, dT[2] * r
     pts[:, 3] = np.clip(inten, 0.0, 1.0)
     labels = (inst.astype(np.uint32) << np.uint32(16)) | cls.astype(np.uint32)
     if return_landmarks:

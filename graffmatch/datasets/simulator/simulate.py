@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Callable
 from pathlib import Path
@@ -70,20 +71,35 @@ def simulate_dataset(
     world_config: WorldConfig | None = None,
     trajectory_config: TrajectoryConfig | None = None,
     overwrite: bool = True,
+    reuse: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    profile: str | SensorProfile | None = None,
 ) -> Path:
     """Simulate a drive and write it as a KITTI-layout folder; returns ``out_dir``.
 
     Same (style or world_config, seed, n_scans, sensor, trajectory_config) -> identical bytes of
-    every scan, label, pose and calib file.
+    every scan, label, pose and calib file. ``profile`` is an alias of ``sensor``. With
+    ``reuse``, a folder already holding a complete simulation of the same request is kept as is.
     """
     out = Path(out_dir)
     n = DEFAULT_N_SCANS if n_scans is None else int(n_scans)
     if n < 1:
         raise InvalidInputError("n_scans must be >= 1")
     cfg = world_config if world_config is not None else world_preset(style)
-    prof = get_profile(sensor)
+    prof = get_profile(profile if profile is not None else sensor)
     tcfg = trajectory_config or TrajectoryConfig(mount_height=prof.mount_height)
+    request = {
+        "generator": "graffmatch.datasets.simulator",
+        "version": SIMULATOR_VERSION,
+        "style": cfg.style,
+        "seed": int(seed),
+        "n_scans": n,
+        "world_config": cfg.model_dump(mode="json"),
+        "sensor": prof.model_dump(mode="json"),
+        "trajectory_config": tcfg.model_dump(mode="json"),
+    }
+    if reuse and _is_complete(out, request):
+        return out
     if out.exists() and any(out.iterdir()):
         if not overwrite:
             raise InvalidInputError(f"{out} is not empty (pass overwrite=True)")
@@ -115,14 +131,7 @@ def simulate_dataset(
     writer.write_meta(
         out / "sim_meta.json",
         {
-            "generator": "graffmatch.datasets.simulator",
-            "version": SIMULATOR_VERSION,
-            "style": cfg.style,
-            "seed": int(seed),
-            "n_scans": n,
-            "world_config": cfg.model_dump(mode="json"),
-            "sensor": prof.model_dump(mode="json"),
-            "trajectory_config": tcfg.model_dump(mode="json"),
+            **request,
             "world": world.summary(),
             "label_encoding": "uint32 (instance << 16) | SemanticKITTI class",
             "poses": "camera-0: P = Tr @ T_world_lidar @ inv(Tr); T_world_lidar = inv(Tr) @ P @ Tr",
@@ -131,6 +140,25 @@ def simulate_dataset(
         },
     )
     return out
+
+
+def _is_complete(out: Path, request: dict) -> bool:
+    """True when ``out`` holds every file of a finished simulation of exactly ``request``."""
+    meta_path = out / "sim_meta.json"
+    if not meta_path.is_file():
+        return False
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, ValueError):
+        return False
+    # compare through JSON so tuples and lists agree
+    if any(json.loads(json.dumps(v)) != meta.get(k) for k, v in request.items()):
+        return False
+    n = int(request["n_scans"])
+    return all(
+        (out / sub / f"{n - 1:06d}.{ext}").is_file()
+        for sub, ext in (("velodyne", "bin"), ("labels", "label"))
+    )
 
 
 def load_ground_truth(seq_dir: str | Path) -> LandmarkSet:

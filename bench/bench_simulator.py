@@ -1,0 +1,108 @@
+"""Benchmark the simulated LiDAR: time per scan (median / p95) per style and sensor profile.
+
+    .venv/bin/python bench/bench_simulator.py                 # all styles, all profiles
+    .venv/bin/python bench/bench_simulator.py --scans 50 --json out.json
+    .venv/bin/python bench/bench_simulator.py --write         # include writing KITTI files
+
+The target is <= 0.2 s per 64-beam scan. "render" is ray casting + noise + labels;
+"write" adds the .bin/.label files (with --write). World build and Embree scene build are
+one-off costs per dataset and are reported separately. Also reported per style: the GT
+landmarks each scan sees (>= 30 points), which bounds what a front end can extract.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from graffmatch.datasets.simulator import (
+    PROFILES,
+    STYLES,
+    build_world,
+    gt_landmarks_in_scan,
+    plan_route,
+    render_scan,
+)
+from graffmatch.datasets.simulator.writer import write_scan
+
+
+def bench(style: str, profile: str, n_scans: int, seed: int, write: bool) -> dict:
+    t0 = time.perf_counter()
+    world = build_world(style, seed)
+    t_world = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    _ = world.scene
+    t_scene = time.perf_counter() - t0
+    traj = plan_route(world, n_scans, seed)
+    times, n_pts, lines, planes = [], [], [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, T in enumerate(traj.T_world_lidar):
+            t0 = time.perf_counter()
+            pts, labels, lm = render_scan(world, T, profile, i, return_landmarks=True)
+            if write:
+                write_scan(Path(tmp), i, pts, labels)
+            times.append(time.perf_counter() - t0)
+            n_pts.append(len(pts))
+            vis = gt_landmarks_in_scan(world, lm, T, min_points=30).counts()
+            lines.append(vis["lines"])
+            planes.append(vis["planes"])
+    t = np.array(times)
+    return {
+        "style": style,
+        "profile": profile,
+        "scans": n_scans,
+        "median_s": float(np.median(t)),
+        "p95_s": float(np.percentile(t, 95)),
+        "points_median": int(np.median(n_pts)),
+        "world_build_s": t_world,
+        "scene_build_s": t_scene,
+        "triangles": len(world.triangles),
+        "gt_lines_per_scan": float(np.mean(lines)),
+        "gt_planes_per_scan": float(np.mean(planes)),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--scans", type=int, default=30, help="scans per (style, profile)")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--styles", nargs="*", default=list(STYLES))
+    ap.add_argument("--profiles", nargs="*", default=list(PROFILES))
+    ap.add_argument("--write", action="store_true", help="include writing the KITTI files")
+    ap.add_argument("--json", type=Path, default=None, help="write results as JSON here")
+    args = ap.parse_args()
+    rows = [
+        bench(s, p, args.scans, args.seed, args.write) for s in args.styles for p in args.profiles
+    ]
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    hdr = (
+        f"{'style':<10} {'profile':<7} {'median s':>9} {'p95 s':>7} {'points':>7} "
+        f"{'world s':>7} {'scene s':>7} {'tris':>7} {'GT lines':>8} {'GT planes':>9}"
+    )
+    print(f"simulator benchmark ({args.scans} scans each, write={args.write}, load avg {load:.1f})")
+    print(hdr)
+    print("-" * len(hdr))
+    for r in rows:
+        print(
+            f"{r['style']:<10} {r['profile']:<7} {r['median_s']:>9.3f} {r['p95_s']:>7.3f} "
+            f"{r['points_median']:>7d} {r['world_build_s']:>7.2f} {r['scene_build_s']:>7.2f} "
+            f"{r['triangles']:>7d} {r['gt_lines_per_scan']:>8.1f} {r['gt_planes_per_scan']:>9.1f}"
+        )
+    worst64 = max((r["p95_s"] for r in rows if PROFILES[r["profile"]].n_beams == 64), default=0.0)
+    print(f"target <= 0.2 s per 64-beam scan: worst p95 {worst64:.3f} s -> "
+          f"{'OK' if worst64 <= 0.2 else 'TOO SLOW'}")  # fmt: skip
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(
+            json.dumps({"rows": rows, "load_avg": load, "write": args.write}, indent=2)
+        )
+
+
+if __name__ == "__main__":
+    main()
