@@ -84,9 +84,11 @@ class GroundResult:
 def _grid_index(
     xy: Array, cell: float, max_cells: int
 ) -> tuple[NDArray[np.int64], tuple[int, int], Array]:
-    lo = xy.min(axis=0)
-    ij = np.floor((xy - lo) / cell).astype(np.int64)
-    shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
+    lo = np.array([xy[:, 0].min(), xy[:, 1].min()])
+    i = ((xy[:, 0] - lo[0]) / cell).astype(np.int64)  # non-negative: truncation == floor
+    j = ((xy[:, 1] - lo[1]) / cell).astype(np.int64)
+    ij = np.column_stack([i, j])
+    shape = (int(i.max()) + 1, int(j.max()) + 1)
     if shape[0] * shape[1] > max_cells:
         raise InvalidInputError(
             f"cloud spans {shape[0]} x {shape[1]} cells of {cell} m (> {max_cells}); crop it "

@@ -147,7 +147,10 @@ def detect_patches(points: Array, cfg: PlaneConfig) -> NDArray[np.int64]:
     R_o = Rs[order]
     local = (points @ R_o.transpose(1, 0, 2).reshape(3, -1)).reshape(m, len(order), 3)
     local -= np.einsum("pk,pkj->pj", centers[order], R_o)[None]
-    inside = np.all(np.abs(local) <= half[order][None], axis=2)
+    np.abs(local, out=local)
+    h = half[order]
+    # explicit per-axis tests: a numpy reduce over a length-3 axis is several times slower
+    inside = (local[:, :, 0] <= h[:, 0]) & (local[:, :, 1] <= h[:, 1]) & (local[:, :, 2] <= h[:, 2])
     hit = inside.any(axis=1)
     labels[hit] = order[np.argmax(inside[hit], axis=1)]
     return labels
