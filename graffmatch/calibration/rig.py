@@ -402,14 +402,16 @@ def make_lidar_lidar_scenario(
         while len(boards) < n_boards and tries < 2000:
             tries += 1
             r = rng.uniform(2.0, 8.0)
-            az = rng.uniform(-np.pi, np.pi)
+            # Parallel boards all face -x, so they must stand in front (+x) to be seen.
+            az = rng.uniform(-1.0, 1.0) if parallel_boards else rng.uniform(-np.pi, np.pi)
             half = np.arctan2(0.75 * bw, r) + np.radians(3.0)
             if any(abs(np.angle(np.exp(1j * (az - a)))) < half + h for a, h in azimuths):
                 continue
             z = rng.uniform(-0.4, 1.0)
             centre = np.array([r * np.cos(az), r * np.sin(az), z])
             if parallel_boards:
-                Tb = make_transform(np.eye(3), centre)
+                R_par = np.array([[0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+                Tb = make_transform(R_par, centre)
             else:
                 Tb = _board_facing(
                     centre,
@@ -421,10 +423,12 @@ def make_lidar_lidar_scenario(
             boards.append(Tb)
             azimuths.append((az, half))
         if len(boards) < n_boards:
-            raise InvalidInputError(f"cannot place {n_boards} non-overlapping boards")
+            continue
         T_boards = np.stack(boards)
         if parallel_boards or _min_normal_spread(T_boards) > 0.2 or n_boards < 3:
             break
+    else:
+        raise InvalidInputError(f"cannot place {n_boards} non-overlapping boards around the LiDARs")
     scene = CalibrationScene(board, T_boards, ground_z=-1.7 if ground else None)
     cloud_a = simulate_lidar(scene, T_world_a, model_a, rng)
     cloud_b = simulate_lidar(scene, T_world_b, model_b, rng)
