@@ -189,6 +189,25 @@ def register_associations(
     return np.asarray(est.T_target_source, float), valid, {"kappa": kappa, "degenerate": degenerate}
 
 
+def no_estimate(message: str, timer: Timer | None = None) -> MethodOutput:
+    """The uniform "could not match" output (counted as a failed pair, never an error)."""
+    timings = (timer or Timer()).finish()
+    return MethodOutput(None, timings=timings, valid=False, info={"message": message})
+
+
+_TYPE_IDS = {"point": 0, "line": 1, "plane": 2}
+
+
+def too_few_landmarks(pair: PairInput, types: Any = None, minimum: int = 2) -> str | None:
+    """A message if either scan has fewer than ``minimum`` landmarks of the given types."""
+    ids = [0, 1, 2] if types is None else [_TYPE_IDS[str(t)] for t in types]
+    ns = int(np.isin(pair.source.types, ids).sum())
+    nt = int(np.isin(pair.target.types, ids).sum())
+    if ns < minimum or nt < minimum:
+        return f"too few landmarks to match: source {ns}, target {nt} (types {types or 'all'})"
+    return None
+
+
 # ----------------------------------------------------------------------------------------------
 # GraffMatch and its variants
 # ----------------------------------------------------------------------------------------------
@@ -227,6 +246,9 @@ class GraffMatchMethod:
 
     def run(self, pair: PairInput) -> MethodOutput:
         timer = Timer()
+        problem = too_few_landmarks(pair, self.config.landmark_types)
+        if problem:
+            return no_estimate(problem, timer)
         with timer.stage("match"):
             res = self._match(pair)
         timings = timer.finish()

@@ -423,3 +423,15 @@ def test_kiss_matcher_recovers_rigid_transform() -> None:
     out = get_method("KISS-Matcher", voxel_size=0.4).run(_scan_pair(T, seed=5))
     _assert_recovers(out, T, 1.0, 0.2)
     assert out.valid and out.info["n_final_inliers"] > 0
+
+
+@pytest.mark.parametrize("name", list_methods("landmark"))
+def test_landmark_methods_report_no_estimate_on_too_few_landmarks(
+    name: str, small_scene: Scene
+) -> None:
+    """A scan without landmarks of the method's types is a failed pair, not an exception."""
+    poles_only = small_scene.target[small_scene.target.indices_of_type(LandmarkType.LINE)]
+    pair = PairInput(small_scene.source, poles_only[:1])
+    out = get_method(name).run(pair)
+    assert out.T_target_source is None and not out.valid
+    assert len(out.associations) == 0 and out.timings["total"] >= 0

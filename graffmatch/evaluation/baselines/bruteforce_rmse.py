@@ -33,7 +33,9 @@ from graffmatch.evaluation.methods import (
     MethodOutput,
     PairInput,
     Timer,
+    no_estimate,
     register_associations,
+    too_few_landmarks,
 )
 from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.geometry.transforms import check_transform
@@ -124,6 +126,9 @@ class BruteForceRMSE:
     def run(self, pair: PairInput) -> MethodOutput:
         T_init = check_transform(self.T_init, "T_init")
         timer = Timer()
+        problem = too_few_landmarks(pair)
+        if problem:
+            return no_estimate(problem, timer)
         with timer.stage("rmse"):
             src = pair.source.transform(T_init)
             rmse = symmetric_rmse(src, pair.target)

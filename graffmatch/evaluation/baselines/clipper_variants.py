@@ -21,7 +21,14 @@ from typing import Any
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from graffmatch.evaluation.methods import MethodKind, MethodOutput, PairInput, Timer
+from graffmatch.evaluation.methods import (
+    MethodKind,
+    MethodOutput,
+    PairInput,
+    Timer,
+    no_estimate,
+    too_few_landmarks,
+)
 from graffmatch.geometry.landmarks import LandmarkSet
 
 #: rho * tan(eps_graff) and rho * tan(sigma_graff) with the paper's rho=40, eps=0.2, sigma=0.05.
@@ -54,6 +61,9 @@ class _ClipperEuclidean:
         from graffmatch.matcher import match_with_distances
 
         timer = Timer()
+        problem = too_few_landmarks(pair)
+        if problem:
+            return no_estimate(problem, timer)
         src, tgt = pair.source.without_points(), pair.target.without_points()
         with timer.stage("distances"):
             Ds, Dt = self.distances(src), self.distances(tgt)

@@ -36,7 +36,9 @@ from graffmatch.evaluation.methods import (
     MethodOutput,
     PairInput,
     Timer,
+    no_estimate,
     register_associations,
+    too_few_landmarks,
 )
 from graffmatch.geometry.landmarks import LandmarkSet
 
@@ -200,6 +202,9 @@ class ClusterMatch:
         src, tgt = pair.source.without_points(), pair.target.without_points()
         rng = np.random.default_rng(self.seed)
         timer = Timer()
+        problem = too_few_landmarks(pair)
+        if problem:
+            return no_estimate(problem, timer)
         with timer.stage("signatures"):
             sp, tp, n_cand = candidate_pair_matches(
                 src, tgt, self.pair_tolerance, self.min_pair_distance, self.max_hypotheses, rng

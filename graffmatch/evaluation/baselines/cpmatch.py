@@ -34,7 +34,9 @@ from graffmatch.evaluation.methods import (
     MethodOutput,
     PairInput,
     Timer,
+    no_estimate,
     register_associations,
+    too_few_landmarks,
 )
 from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.geometry.transforms import check_transform
@@ -93,6 +95,9 @@ class CPMatch:
     def run(self, pair: PairInput) -> MethodOutput:
         T_init = check_transform(self.T_init, "T_init")
         timer = Timer()
+        problem = too_few_landmarks(pair)
+        if problem:
+            return no_estimate(problem, timer)
         with timer.stage("association"):
             src = pair.source.without_points().transform(T_init)
             a = cp_associations(src, pair.target, self.max_cp_distance, self.max_angle_deg)
