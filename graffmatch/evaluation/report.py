@@ -126,7 +126,7 @@ def _sort_key(k: tuple) -> tuple:
 
 def _ordered(methods: Iterable[str], order: Sequence[str]) -> list[str]:
     ms = set(methods)
-    head = [m for m in order if m in ms]
+    head = [m for m in dict.fromkeys(order) if m in ms]
     return head + sorted(ms - set(head))
 
 
@@ -252,6 +252,23 @@ def _table_md(table: Mapping[str, Any], cols: Sequence[tuple[str, str, str]]) ->
     return "\n".join(lines)
 
 
+def _table_long_md(table: Mapping[str, Any], cols: Sequence[tuple[str, str, str]]) -> str:
+    """The same table, one line per (suite, case, method): readable at any method count."""
+    head = ["suite", "case", "N", "method", *[label for _, label, _ in cols]]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for row in table["rows"]:
+        for m in table["methods"]:
+            v = row["methods"].get(m)
+            if v is None:
+                continue
+            vals = [str(row["suite"]), str(row["case"]), str(row["n"]), m]
+            for key, _, spec in cols:
+                s = _fmt(v[key], spec)
+                vals.append(f"**{s}**" if m in row.get(f"best_{key}", []) else s)
+            lines.append("| " + " | ".join(vals) + " |")
+    return "\n".join(lines)
+
+
 TABLE1_COLS = (
     ("recall_pct", "recall [%]", ".0f"),
     ("auc", "AUC", ".2f"),
@@ -352,9 +369,9 @@ def check_expectations(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]
         elif n_ok == len(evaluated):
             verdict = f"reproduced in all {len(evaluated)} suite x case cells"
         elif n_ok == 0:
-            verdict = f"not reproduced in any of {len(evaluated)} cells"
+            verdict = f"not reproduced in any of {len(evaluated)} suite x case cells"
         else:
-            verdict = f"partly reproduced: {n_ok} of {len(evaluated)} cells"
+            verdict = f"partly reproduced: {n_ok} of {len(evaluated)} suite x case cells"
         return {
             "id": claim_id,
             "claim": claim,
@@ -522,7 +539,7 @@ def fig_lmr(records: Sequence[Mapping[str, Any]], methods: Sequence[str], path: 
         a.set_ylim(-0.02, 1.02)
         a.grid(alpha=0.3)
     a1.legend(fontsize=7, loc="lower left")
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.12, top=0.92, wspace=0.18)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -534,100 +551,122 @@ TRANS_RANGE = (-2.5, 2.0)  # log10 m
 def fig_error_heatmaps(
     records: Sequence[Mapping[str, Any]], methods: Sequence[str], path: Path, title: str
 ) -> None:
-    """Alignment-error densities: rows = cases, columns = methods (GT-matches first)."""
+    """Alignment-error densities: rows = cases, columns = methods (GT-matches first).
+
+    Each panel is a 2D histogram of log10 translation error (x, -2.5..2) vs log10 rotation
+    error (y, -2..2.5), divided by its maximum ("likelihood-normalised"); cyan lines mark
+    5 deg and 1 m; pairs without an estimate are counted under the panel. The panels are tiled
+    into one image on one axes: dozens of matplotlib axes would dominate the report's runtime.
+    """
     plt = _plt()
     cases = sorted({r["case"] for r in records}, key=str)
     groups = _group(records, "case", "method")
-    fig, axes = plt.subplots(
-        len(cases),
-        len(methods),
-        figsize=(1.9 * len(methods) + 1, 1.9 * len(cases) + 0.8),
-        squeeze=False,
-        sharex=True,
-        sharey=True,
-    )
-    bins = (np.linspace(*TRANS_RANGE, 26), np.linspace(*ROT_RANGE, 26))
+    nr, nc, nb, gap = len(cases), len(methods), 30, 6
+    bins = (np.linspace(*TRANS_RANGE, nb + 1), np.linspace(*ROT_RANGE, nb + 1))
+    img = np.full((nr * (nb + gap), nc * (nb + gap)), np.nan)
+    labels = []
     for i, case in enumerate(cases):
         for j, m in enumerate(methods):
-            ax = axes[i, j]
             g = groups.get((case, m), [])
             rot = np.array([_f(r["rotation_error_deg"]) for r in g])
             tr = np.array([_f(r["translation_error_m"]) for r in g])
             fin = np.isfinite(rot) & np.isfinite(tr)
             x = np.clip(np.log10(np.maximum(tr[fin], 1e-9)), *TRANS_RANGE)
             y = np.clip(np.log10(np.maximum(rot[fin], 1e-9)), *ROT_RANGE)
-            H, xe, ye = np.histogram2d(x, y, bins=bins)
+            H, _, _ = np.histogram2d(x, y, bins=bins)
             if H.max() > 0:
                 H = H / H.max()  # likelihood-normalised: the densest cell is 1
-            ax.pcolormesh(xe, ye, H.T, cmap="magma", vmin=0, vmax=1)
-            ax.axvline(0.0, color="c", lw=0.6)  # 1 m
-            ax.axhline(np.log10(5.0), color="c", lw=0.6)  # 5 deg
-            n_none = int((~fin).sum())
+            r0, c0 = i * (nb + gap), j * (nb + gap)
+            img[r0 : r0 + nb, c0 : c0 + nb] = H.T[::-1]  # rows: high rotation error on top
             ok = sum(bool(r["success"]) for r in g)
-            ax.set_title(f"{m}\n{ok}/{len(g)} ok, {n_none} none", fontsize=7)
-            if j == 0:
-                ax.set_ylabel(f"case {case}\nlog10 R_e [deg]", fontsize=7)
-            if i == len(cases) - 1:
-                ax.set_xlabel("log10 t_e [m]", fontsize=7)
-            ax.tick_params(labelsize=6)
-    fig.suptitle(f"{title}: alignment error density (cyan: 5 deg / 1 m)", fontsize=9)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
+            labels.append(
+                (r0 + nb + 0.5, c0 + nb / 2, f"{ok}/{len(g)} ok, {int((~fin).sum())} none")
+            )
+    fig, ax = plt.subplots(figsize=(1.45 * nc + 1.0, 1.55 * nr + 1.0))
+    fig.subplots_adjust(left=0.8 / (1.45 * nc + 1.0), right=0.99, bottom=0.02, top=0.86)
+    cmap = plt.get_cmap("magma").with_extremes(bad="white")
+    ax.imshow(img, cmap=cmap, vmin=0, vmax=1, interpolation="nearest", aspect="equal")
+    # threshold lines: x = log10(1 m), y = log10(5 deg), in bin units of each panel
+    xt = (0.0 - TRANS_RANGE[0]) / (TRANS_RANGE[1] - TRANS_RANGE[0]) * nb - 0.5
+    yt = nb - (np.log10(5.0) - ROT_RANGE[0]) / (ROT_RANGE[1] - ROT_RANGE[0]) * nb - 0.5
+    for i in range(nr):
+        for j in range(nc):
+            r0, c0 = i * (nb + gap), j * (nb + gap)
+            ax.plot([c0 + xt] * 2, [r0 - 0.5, r0 + nb - 0.5], color="c", lw=0.6)
+            ax.plot([c0 - 0.5, c0 + nb - 0.5], [r0 + yt] * 2, color="c", lw=0.6)
+    for r, c, text in labels:
+        ax.text(c, r, text, ha="center", va="top", fontsize=5.5)
+    for j, m in enumerate(methods):
+        ax.text(j * (nb + gap) + nb / 2, -1.5, m, ha="center", va="bottom", fontsize=6.5)
+    for i, case in enumerate(cases):
+        ax.text(
+            -2,
+            i * (nb + gap) + nb / 2,
+            f"case {case}",
+            ha="right",
+            va="center",
+            fontsize=7,
+            rotation=90,
+        )
+    ax.set_axis_off()
+    ax.set_xlim(-4, img.shape[1])
+    ax.set_ylim(img.shape[0], -4)
+    fig.suptitle(
+        f"{title}: alignment-error density per method (columns) and case (rows)\n"
+        "x: log10 t_e [m] from -2.5 to 2, y: log10 R_e [deg] from -2 to 2.5; cyan: 1 m, 5 deg",
+        fontsize=7,
+    )
+    fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
 def fig_runtimes(records: Sequence[Mapping[str, Any]], methods: Sequence[str], out: Path) -> None:
-    """Box plots of total runtime per method, and of each stage per method."""
+    """Box plots of total runtime per method, and of each stage of each method (one axes)."""
     plt = _plt()
     groups = _group(records, "method")
-    data, labels = [], []
-    for m in methods:
-        v = [1e3 * _f(r["timings"].get("total")) for r in groups.get((m,), [])]
-        v = [x for x in v if np.isfinite(x) and x > 0]
-        if v:
-            data.append(v)
-            labels.append(m)
-    fig, ax = plt.subplots(figsize=(max(6, 0.7 * len(labels) + 2), 4.5))
-    if data:
-        ax.boxplot(data, showfliers=True)
-        ax.set_xticks(range(1, len(labels) + 1), labels, rotation=45, ha="right", fontsize=8)
-        ax.set_yscale("log")
-    ax.axhline(100.0, color="gray", ls=":", lw=0.8)  # 10 Hz budget
-    ax.set(ylabel="total runtime [ms] (log)", title="Runtime per method (dotted: 100 ms)")
-    fig.tight_layout()
-    fig.savefig(out / "runtime_total.png", dpi=110)
-    plt.close(fig)
 
-    staged = []
+    def box(path: Path, series: list[tuple[str, list[float]]], ylabel: str, title: str) -> None:
+        fig, ax = plt.subplots(figsize=(max(6.0, 0.32 * len(series) + 2), 4.8))
+        fig.subplots_adjust(left=0.09, right=0.99, bottom=0.38, top=0.92)
+        if series:
+            ax.boxplot([v for _, v in series], showfliers=False)
+            ax.set_xticks(
+                range(1, len(series) + 1),
+                [k for k, _ in series],
+                rotation=60,
+                ha="right",
+                fontsize=6.5,
+            )
+            ax.set_yscale("log")
+        ax.axhline(100.0, color="gray", ls=":", lw=0.8)  # 10 Hz LiDAR budget
+        ax.set_ylabel(ylabel)
+        ax.set_title(title, fontsize=9)
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+
+    def ms(g: Sequence[Mapping[str, Any]], stage: str) -> list[float]:
+        v = [1e3 * _f(r["timings"].get(stage)) for r in g if stage in r["timings"]]
+        return [max(x, 1e-3) for x in v if np.isfinite(x)]
+
+    totals = [(m, ms(groups.get((m,), []), "total")) for m in methods]
+    box(
+        out / "runtime_total.png",
+        [(m, v) for m, v in totals if v],
+        "total runtime per pair [ms] (log)",
+        "Runtime per method (dotted: 100 ms = 10 Hz)",
+    )
+    stages: list[tuple[str, list[float]]] = []
     for m in methods:
         g = groups.get((m,), [])
-        stages = sorted({k for r in g for k in r["timings"] if k != "total"})
-        if stages:
-            staged.append((m, stages, g))
-    if not staged:
-        return
-    ncol = min(3, len(staged))
-    nrow = int(np.ceil(len(staged) / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(5 * ncol, 3.6 * nrow), squeeze=False)
-    for ax, (m, stages, g) in zip(axes.flat, staged, strict=False):
-        d = [
-            [
-                max(1e3 * _f(r["timings"][s]), 1e-3)
-                for r in g
-                if s in r["timings"] and np.isfinite(_f(r["timings"][s]))
-            ]
-            for s in stages
-        ]
-        ax.boxplot(d, showfliers=False)
-        ax.set_xticks(range(1, len(stages) + 1), stages, rotation=40, ha="right", fontsize=7)
-        ax.set_yscale("log")
-        ax.set_title(m, fontsize=9)
-        ax.set_ylabel("ms", fontsize=8)
-    for ax in list(axes.flat)[len(staged) :]:
-        ax.set_visible(False)
-    fig.tight_layout()
-    fig.savefig(out / "runtime_stages.png", dpi=100)
-    plt.close(fig)
+        names = sorted({k for r in g for k in r["timings"] if k != "total"})
+        stages += [(f"{m}: {s}", v) for s in names if (v := ms(g, s))]
+    if stages:
+        box(
+            out / "runtime_stages.png",
+            stages,
+            "stage runtime [ms] (log)",
+            "Runtime per method and stage",
+        )
 
 
 def fig_rho(rho_rows: Sequence[Mapping[str, Any]], stats: Mapping[str, Any], path: Path) -> None:
@@ -657,7 +696,7 @@ def fig_rho(rho_rows: Sequence[Mapping[str, Any]], stats: Mapping[str, Any], pat
     a2.grid(alpha=0.3)
     if rho_rows:
         a2.legend(fontsize=8)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.07, right=0.99, bottom=0.13, top=0.92, wspace=0.2)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -788,11 +827,13 @@ def make_report(results_dir: str | Path, out_dir: str | Path | None = None) -> P
             for r in t1["rows"]
         )
         + "\n",
-        t1_md + "\n",
-        "CSV/JSON: [table1.csv](table1.csv), [table1.json](table1.json).\n",
+        _table_long_md(t1, TABLE1_COLS) + "\n",
+        "The paper's wide layout: [table1.md](table1.md); CSV/JSON: [table1.csv](table1.csv), "
+        "[table1.json](table1.json).\n",
         "## Table II analogue: point-based methods (GraffMatch without ICP for reference)\n",
-        t2_md + "\n",
-        "CSV/JSON: [table2.csv](table2.csv), [table2.json](table2.json).\n",
+        _table_long_md(t2, TABLE2_COLS) + "\n",
+        "The paper's wide layout: [table2.md](table2.md); CSV/JSON: [table2.csv](table2.csv), "
+        "[table2.json](table2.json).\n",
         "## The paper's expectations, checked on our numbers\n",
         exp_md,
         "## ρ sensitivity (GraffMatch)\n",

@@ -132,8 +132,16 @@ class PairRef:
         return _dataset_pairs(self.dataset_dir)[self.index]
 
 
-@functools.lru_cache(maxsize=4)
 def _dataset_pairs(dataset_dir: str) -> list[Any]:
+    """The pairs of a dataset folder, loaded once per process (and again if rebuilt)."""
+    from graffmatch.evaluation.loop_closures import PAIRS_FILE
+
+    f = Path(dataset_dir) / PAIRS_FILE
+    return _dataset_pairs_cached(dataset_dir, f.stat().st_mtime_ns if f.is_file() else 0)
+
+
+@functools.lru_cache(maxsize=8)
+def _dataset_pairs_cached(dataset_dir: str, mtime_ns: int) -> list[Any]:
     from graffmatch.evaluation.loop_closures import LoopClosureDataset
 
     return list(LoopClosureDataset.load(Path(dataset_dir)))
@@ -463,28 +471,32 @@ def _entries_from(pairs: Iterable[Any], dataset_dir: str | None) -> list[_PairEn
     return out
 
 
-Sources = Mapping[str, Iterable[Any]] | Sequence[str | Path]
+#: ``{suite: pairs or dataset folder}`` or a list of dataset folders (suite = folder name).
+Sources = Mapping[str, Iterable[Any] | str | Path] | Sequence[str | Path] | str | Path
 
 
 def _normalize_sources(sources: Sources) -> dict[str, tuple[list[_PairEntry], list[Any]]]:
     """suite -> (entries, pairs). Dataset folders become PairRefs (workers load them)."""
     out: dict[str, tuple[list[_PairEntry], list[Any]]] = {}
-    if isinstance(sources, Mapping):
-        for name, pairs in sources.items():
-            pairs = list(pairs)
-            out[str(name)] = (_entries_from(pairs, None), pairs)
-        return out
     if isinstance(sources, (str, Path)):
         sources = [sources]
-    for d in sources:
-        d = Path(d)
-        if not d.is_dir():
-            raise InvalidInputError(f"loop-closure dataset folder not found: {d}")
-        pairs = _dataset_pairs(str(d.resolve()))
-        name = d.name
+    named: list[tuple[str, Any]] = (
+        [(str(k), v) for k, v in sources.items()]
+        if isinstance(sources, Mapping)
+        else [(Path(d).name, d) for d in sources]
+    )
+    for name, src in named:
         if name in out:
-            raise InvalidInputError(f"two datasets named {name!r}; rename one folder")
-        out[name] = (_entries_from(pairs, str(d.resolve())), pairs)
+            raise InvalidInputError(f"two suites named {name!r}; rename one")
+        if isinstance(src, (str, Path)):
+            d = Path(src)
+            if not d.is_dir():
+                raise InvalidInputError(f"loop-closure dataset folder not found: {d}")
+            pairs = _dataset_pairs(str(d.resolve()))
+            out[name] = (_entries_from(pairs, str(d.resolve())), pairs)
+        else:
+            pairs = list(src)
+            out[name] = (_entries_from(pairs, None), pairs)
     return out
 
 
@@ -587,8 +599,9 @@ def run_study(
     """Run every method on every pair and persist one record per (method, pair).
 
     Args:
-        sources: ``{suite: iterable of pairs}`` (in-memory pairs, e.g. for tests or custom
-            data) or loop-closure dataset folders (the suite is the folder name).
+        sources: ``{suite: iterable of pairs | dataset folder}`` (in-memory pairs, e.g. for
+            tests or custom data; folders are loaded lazily by the workers) or a list of
+            loop-closure dataset folders (the suite is the folder name).
         methods: registry names (``"GraffMatch"``, ``"GraffMatch[rho=20]"``) or picklable
             method objects; default: every registered method. ``GT-matches`` always runs.
         out_dir: results folder; existing records are kept and skipped (resume).
