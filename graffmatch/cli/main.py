@@ -185,7 +185,11 @@ def _counts_text(ls) -> str:
 def demo(
     seed: Annotated[int, typer.Option(help="Seed of the scene and the transform.")] = 0,
     mode: Annotated[
-        str, typer.Option(help="Demo flavour understood by graffmatch.demo.run_demo.")
+        str,
+        typer.Option(
+            help="'lidar': simulated street scans -> extraction -> match; 'landmarks': "
+            "landmark sets directly; 'auto': lidar."
+        ),
     ] = "auto",
 ) -> None:
     """Run the built-in demo: match two views 180° and 14 m apart, print errors and timings.
@@ -199,29 +203,19 @@ def demo(
         report = run_demo(seed=seed, mode=mode)
     debug(f"demo finished in {time.perf_counter() - t0:.2f} s")
     out.print(report)
-    passed = _report_passed(report)
-    if passed is False:
+    if not report.passed:
         err.print("[bold red]demo:[/bold red] the recovered transform misses its bounds")
         raise typer.Exit(EXIT_NOT_VALID)
 
 
 class _null:
+    """No spinner under -q (rich's status would still draw on stderr)."""
+
     def __enter__(self) -> None:
         return None
 
     def __exit__(self, *exc: object) -> None:
         return None
-
-
-def _report_passed(report: Any) -> bool | None:
-    """The demo report's verdict (``passed``/``ok``/``success``), None if it has none."""
-    for name in ("passed", "ok", "success", "within_bounds"):
-        value = getattr(report, name, None)
-        if isinstance(value, bool | np.bool_):
-            return bool(value)
-        if callable(value):
-            return bool(value())
-    return None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -395,17 +389,14 @@ def register(
     """Register SOURCE to TARGET: print T_target_source, inliers, score, κ and validity."""
     from graffmatch.cli.inputs import path_record, read_transform, write_pose_file
 
-    settings = STATE.settings
+    # Check the cheap things first: a typo must not cost an extraction.
     T_gt = read_transform(gt) if gt is not None else None
+    for p in (source, target):
+        if not p.exists():
+            raise MalformedFileError(f"{p}: input not found")
+    settings = STATE.settings
     if pose_out is not None and pose_format is None:
         pose_format = PoseFormatChoice.kitti if pose_out.suffix != ".tum" else PoseFormatChoice.tum
-    if output is None:
-        folder = run_dir("runs", "register")
-        result_path = folder / "result.json"
-    else:
-        result_path = output
-        folder = output.parent if str(output.parent) else Path(".")
-        folder.mkdir(parents=True, exist_ok=True)
     holder: list = []
     steps = 3 + (refine == RefineChoice.icp) + (view is not None)
     with make_progress() as progress:
@@ -426,6 +417,13 @@ def register(
                 refine_info = _refine_icp(src.landmarks, tgt.landmarks, assoc, T_est, result)
                 T_est = refine_info["T_target_source"]
 
+    if output is None:
+        folder = run_dir("runs", "register")
+        result_path = folder / "result.json"
+    else:
+        result_path = output
+        folder = output.parent if str(output.parent) else Path(".")
+        folder.mkdir(parents=True, exist_ok=True)
     # Landmark files next to the result so that `graffmatch view` can redraw it later.
     lm_paths = {}
     for name, item in (("source", src), ("target", tgt)):
@@ -757,83 +755,116 @@ def config_check(
 # ----------------------------------------------------------------------------------------------
 # wrappers over the datasets / evaluation / calibration layers
 # ----------------------------------------------------------------------------------------------
+class SensorChoice(str, Enum):
+    hdl64 = "hdl64"
+    vlp16 = "vlp16"
+    os1_64 = "os1-64"
+
+
 @app.command(
     epilog="[bold]Examples[/bold]\n\n  graffmatch simulate sim/ --style downtown --seed 0\n\n"
-    "  graffmatch simulate sim/ --style suburban --scans 40 --profile vlp16",
+    "  graffmatch simulate sim/ --style suburban --scans 40 --sensor vlp16",
 )
 @cli_errors
 def simulate(
     output: Annotated[Path, typer.Argument(help="Output KITTI-layout folder.")],
-    style: Annotated[str, typer.Option(help="World style: downtown, suburban, open-road.")] = (
-        "downtown"
-    ),
+    style: Annotated[
+        str, typer.Option(help="World style: downtown, suburban or open-road.")
+    ] = "downtown",
     seed: Annotated[int, typer.Option(help="Seed of the world and the trajectory.")] = 0,
-    scans: Annotated[int | None, typer.Option(help="Number of scans (default: simulator's).")] = (
-        None
-    ),
-    profile: Annotated[
-        str | None, typer.Option(help="Sensor profile (hdl64, vlp16, os1-64).")
+    scans: Annotated[
+        int | None, typer.Option(min=1, help="Number of scans, ~1 m apart (default: 200).")
     ] = None,
+    sensor: Annotated[SensorChoice, typer.Option(help="LiDAR profile.")] = SensorChoice.hdl64,
+    overwrite: Annotated[
+        bool, typer.Option(help="Replace the files of a non-empty output folder.")
+    ] = False,
+    reuse: Annotated[
+        bool, typer.Option(help="Keep a folder that already holds this exact simulation.")
+    ] = False,
 ) -> None:
-    """Simulate a LiDAR drive through a procedural world; writes a KITTI-layout dataset."""
-    from graffmatch.datasets.simulator import simulate_dataset
+    """Simulate a LiDAR drive through a procedural city; writes a KITTI-layout dataset.
 
-    kwargs: dict[str, Any] = {}
-    if scans is not None:
-        kwargs["n_scans"] = scans
-    if profile is not None:
-        kwargs["profile"] = profile
+    velodyne/*.bin, labels/*.label (SemanticKITTI classes), poses.txt (camera-0), calib.txt
+    and the ground-truth landmarks; same seed -> identical bytes.
+    """
+    from graffmatch.datasets.simulator import STYLES, simulate_dataset
+
+    if style not in STYLES:
+        raise InvalidInputError(f"unknown style {style!r}; choose one of {', '.join(STYLES)}")
     t0 = time.perf_counter()
-    with err.status(f"simulating {style} (seed {seed}) ...") if not STATE.quiet else _null():
-        res = simulate_dataset(output, style=style, seed=seed, **kwargs)
-    info(f"simulated dataset -> {output} in {time.perf_counter() - t0:.1f} s")
-    if res is not None and not STATE.quiet:
-        out.print(res)
+    with make_progress() as progress:
+        task = progress.add_task(f"simulating {style}", total=scans)
+
+        def tick(done: int, total: int) -> None:
+            progress.update(task, completed=done, total=total)
+
+        folder = simulate_dataset(
+            output,
+            style=style,
+            seed=seed,
+            n_scans=scans,
+            sensor=sensor.value,
+            overwrite=overwrite,
+            reuse=reuse,
+            progress=tick,
+        )
+    n = len(list((Path(folder) / "velodyne").glob("*.bin")))
+    info(
+        f"simulated {n} scans ({style}, {sensor.value}, seed {seed}) in "
+        f"{time.perf_counter() - t0:.1f} s -> {folder}"
+    )
 
 
 @app.command(
     "build-dataset",
-    epilog="[bold]Examples[/bold]\n\n  graffmatch build-dataset sim-downtown --quick\n\n"
+    epilog="[bold]Examples[/bold]\n\n  graffmatch build-dataset --list\n\n"
+    "  graffmatch build-dataset sim-downtown --quick\n\n"
     "  graffmatch build-dataset balm_courtyard -o datasets/",
 )
 @cli_errors
 def build_dataset(
     name: Annotated[
-        str, typer.Argument(help="Suite name (see 'graffmatch build-dataset --list').")
-    ] = "",
-    output: Annotated[Path, typer.Option("--output", "-o", help="Root folder of suites.")] = Path(
-        "datasets"
-    ),
+        str | None, typer.Argument(help="Suite name (see --list).", show_default=False)
+    ] = None,
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="Root folder; the suite goes to <root>/<name>.")
+    ] = Path("datasets"),
     quick: Annotated[bool, typer.Option(help="A small version (for tests and previews).")] = False,
     list_: Annotated[bool, typer.Option("--list", help="List the built-in suites.")] = False,
 ) -> None:
-    """Build a loop-closure benchmark suite: places, revisits, landmarks, ground-truth matches."""
-    from graffmatch.evaluation import suites as suites_mod
+    """Build a loop-closure suite: places, revisits, landmarks, ground-truth matches, cases."""
+    from graffmatch.evaluation.suites import SUITES, build_suite
 
-    if list_ or not name:
-        names = _suite_names(suites_mod)
-        out.print("\n".join(names))
-        if not name:
-            return
-    t0 = time.perf_counter()
-    with err.status(f"building {name} ...") if not STATE.quiet else _null():
-        res = suites_mod.build_suite(name, output, quick)
-    info(f"built {name} -> {output} in {time.perf_counter() - t0:.1f} s")
-    if res is not None and not STATE.quiet:
-        out.print(res)
+    if list_ or name is None:
+        for key in sorted(SUITES):
+            out.print(f"{key:18s} {SUITES[key].description}")
+        return
+    summary = build_suite(name, output, quick=quick, progress=not STATE.quiet)
+    folder = output / (f"{name}-quick" if quick else name)
+    write_config_next_to(folder)
+    info(_summary_line(summary, folder))
 
 
-def _suite_names(suites_mod: Any) -> list[str]:
-    suites = getattr(suites_mod, "SUITES", None)
-    if suites is None:
-        from graffmatch.datasets.simulator import SUITES as suites
-    return sorted(suites)
+def _summary_line(summary: Any, folder: Path) -> str:
+    if not isinstance(summary, dict):
+        return f"built -> {folder}"
+    keys = ("n_places", "n_pairs", "n_valid", "cases", "total_s")
+    parts = [f"{k}={summary[k]}" for k in keys if k in summary]
+    return f"built {summary.get('suite', '')} -> {folder}  " + " ".join(parts)
+
+
+class ExecutorChoice(str, Enum):
+    local = "local"
+    serial = "serial"
+    dask = "dask"
+    ray = "ray"
 
 
 @app.command(
-    epilog="[bold]Examples[/bold]\n\n  graffmatch benchmark sim-downtown --quick\n\n"
-    "  graffmatch benchmark sim-downtown balm_courtyard --executor dask "
-    "--address tcp://10.0.0.2:8786",
+    epilog="[bold]Examples[/bold]\n\n  graffmatch benchmark --quick\n\n"
+    "  graffmatch benchmark sim-downtown balm_courtyard -o bench-out\n\n"
+    "  graffmatch benchmark --executor dask --address tcp://10.0.0.2:8786",
 )
 @cli_errors
 def benchmark(
@@ -844,31 +875,42 @@ def benchmark(
         Path | None,
         typer.Option("--output", "-o", help="Results folder; default runs/<time>_benchmark/."),
     ] = None,
-    quick: Annotated[bool, typer.Option(help="The small, ≤5 min version.")] = False,
+    quick: Annotated[bool, typer.Option(help="The small (≤ 5 min) version.")] = False,
     executor: Annotated[
-        str, typer.Option(help="local (process pool), serial, dask or ray.")
-    ] = "local",
+        ExecutorChoice, typer.Option(help="Where pairs run.")
+    ] = ExecutorChoice.local,
     address: Annotated[
         str | None, typer.Option(help="Cluster scheduler address (dask/ray).")
     ] = None,
-    workers: Annotated[int | None, typer.Option(help="Local worker processes.")] = None,
+    workers: Annotated[int | None, typer.Option(min=1, help="Local worker processes.")] = None,
+    methods: Annotated[
+        list[str] | None, typer.Option("--method", "-m", help="Only these methods (repeatable).")
+    ] = None,
+    data_dir: Annotated[
+        Path | None, typer.Option(help="Cache of built suites (share it between runs).")
+    ] = None,
 ) -> None:
-    """Run the paper's experiments (every method on every pair) in parallel; resumable."""
+    """Run the paper's experiments (every method on every pair) in parallel; resumable.
+
+    Rerun with the same -o to continue a killed run; then 'graffmatch report <folder>'.
+    """
     from graffmatch.evaluation.benchmark import run_benchmark
 
     out_dir = output or run_dir("runs", "benchmark")
+    out_dir.mkdir(parents=True, exist_ok=True)
     write_config_next_to(out_dir)
     res = run_benchmark(
         suites=list(suites or []) or None,
         out_dir=out_dir,
         quick=quick,
-        executor=executor,
+        executor=executor.value,
         address=address,
         workers=workers,
+        methods=list(methods) if methods else None,
+        data_dir=data_dir,
+        progress=not STATE.quiet,
     )
-    info(f"results -> {out_dir}")
-    if res is not None and not STATE.quiet:
-        out.print(res)
+    info(f"results -> {res}")
 
 
 @app.command(
@@ -879,7 +921,8 @@ def benchmark(
 def report(
     results: Annotated[Path, typer.Argument(help="Folder written by 'graffmatch benchmark'.")],
     output: Annotated[
-        Path | None, typer.Option("--output", "-o", help="Report folder; default <results>/report.")
+        Path | None,
+        typer.Option("--output", "-o", help="Report folder; default <results>/report."),
     ] = None,
 ) -> None:
     """Turn benchmark results into tables, figures and a markdown summary."""
@@ -887,10 +930,9 @@ def report(
 
     if not results.is_dir():
         raise MalformedFileError(f"{results}: results folder not found")
-    out_dir = output or results / "report"
     with err.status("writing the report ...") if not STATE.quiet else _null():
-        res = make_report(results, out_dir)
-    info(f"report -> {res if res is not None else out_dir}")
+        folder = make_report(results, output)
+    info(f"report -> {folder}")
 
 
 class CalibKind(str, Enum):
@@ -908,29 +950,35 @@ class CalibKind(str, Enum):
 def calibrate(
     cloud_a: Annotated[Path | None, typer.Argument(help="Point cloud of LiDAR A.")] = None,
     cloud_b: Annotated[Path | None, typer.Argument(help="Point cloud of LiDAR B.")] = None,
-    demo_: Annotated[bool, typer.Option("--demo", help="Run the simulated rig.")] = False,
+    demo_: Annotated[bool, typer.Option("--demo", help="Run the simulated rig(s).")] = False,
     kind: Annotated[CalibKind, typer.Option(help="Which demo rig.")] = CalibKind.both,
     seed: Annotated[int, typer.Option(help="Seed of the simulated rig.")] = 0,
     output: Annotated[Path | None, typer.Option("--output", "-o", help="Result JSON.")] = None,
 ) -> None:
-    """Extrinsic calibration from planar boards (LiDAR-LiDAR, camera-depth) with GraffMatch."""
+    """Extrinsic calibration from planar boards with GraffMatch (planes only, no initial guess).
+
+    With two clouds: T_b_a (maps LiDAR A points into LiDAR B's frame), κ and plane residuals.
+    With --demo: simulated rigs with known extrinsics; exit code 3 if a bound (1°, 5 cm) is missed.
+    """
     from graffmatch import calibration
 
+    cal = STATE.settings.calibration
     if demo_:
         kinds = ["lidar-lidar", "camera-depth"] if kind == CalibKind.both else [kind.value]
         reports = {}
-        failed = False
         for k in kinds:
+            config = cal.lidar_lidar if k == "lidar-lidar" else cal.camera_depth
             with (
                 err.status(f"calibrating the simulated {k} rig ...") if not STATE.quiet else _null()
             ):
-                rep = calibration.run_calibration_demo(kind=k, seed=seed)
-            out.print(rep)
+                rep = calibration.run_calibration_demo(kind=k, seed=seed, config=config)
+            out.print(calibration.format_demo_report(rep))
             reports[k] = rep
-            failed |= _report_passed(rep) is False
         if output is not None:
-            _write_json(output, {k: _as_dict(v) for k, v in reports.items()})
-        if failed:
+            _write_json(output, reports)
+        missed = [k for k, r in reports.items() if not r.get("within_bounds", False)]
+        if missed:
+            err.print(f"[bold red]calibrate:[/bold red] bounds missed for {', '.join(missed)}")
             raise typer.Exit(EXIT_NOT_VALID)
         return
     if cloud_a is None or cloud_b is None:
@@ -939,22 +987,17 @@ def calibrate(
 
     a, _ = read_scan(cloud_a)
     b, _ = read_scan(cloud_b)
-    res = calibration.calibrate_lidar_lidar(a[:, :3], b[:, :3])
-    out.print(res)
+    res = calibration.calibrate_lidar_lidar(a[:, :3], b[:, :3], cal.lidar_lidar)
+    out.print(repr(res))
+    T = np.asarray(res.T_target_source)
+    out.print("[bold]T_b_a[/bold] (LiDAR A -> LiDAR B)")
+    for r in T:
+        out.print("  " + " ".join(f"{v:+10.5f}" for v in r))
     if output is not None:
-        _write_json(output, _as_dict(res))
-
-
-def _as_dict(obj: Any) -> Any:
-    import dataclasses
-
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: _as_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    if hasattr(obj, "model_dump"):
-        return obj.model_dump(mode="json")
-    if hasattr(obj, "to_dict"):
-        return obj.to_dict()
-    return obj
+        _write_json(output, res.to_dict())
+        info(f"result: {output}")
+    if not res.valid:
+        raise typer.Exit(EXIT_NOT_VALID)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -44,6 +44,8 @@ def _optional_model(module: str, name: str) -> type[BaseModel]:
 
 MatcherConfig = _optional_model("graffmatch.matcher", "GraffMatchConfig")
 ExtractorConfig = _optional_model("graffmatch.lidar.extractor", "LandmarkExtractorConfig")
+LidarLidarConfig = _optional_model("graffmatch.calibration.lidar_lidar", "LidarLidarConfig")
+CameraDepthConfig = _optional_model("graffmatch.calibration.camera_depth", "CameraDepthConfig")
 
 
 class IcpConfig(BaseModel):
@@ -97,6 +99,20 @@ class InputConfig(BaseModel):
     )
 
 
+class CalibrationSettings(BaseModel):
+    """Extrinsic calibration from planar boards (``graffmatch calibrate``)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    lidar_lidar: LidarLidarConfig = Field(  # type: ignore[valid-type]
+        default_factory=LidarLidarConfig, description="LiDAR-LiDAR: board planes + GraffMatch."
+    )
+    camera_depth: CameraDepthConfig = Field(  # type: ignore[valid-type]
+        default_factory=CameraDepthConfig,
+        description="Camera-depth: chessboard PnP planes, depth planes + GraffMatch.",
+    )
+
+
 class Settings(BaseModel):
     """Every setting of the tool; ``graffmatch config dump`` prints it with the defaults."""
 
@@ -114,6 +130,9 @@ class Settings(BaseModel):
         default_factory=GroundTruthConfig, description="Judging results against ground truth."
     )
     view: ViewConfig = Field(default_factory=ViewConfig, description="Interactive 3D view.")
+    calibration: CalibrationSettings = Field(
+        default_factory=CalibrationSettings, description="Extrinsic calibration."
+    )
 
 
 def missing_sections() -> list[str]:
