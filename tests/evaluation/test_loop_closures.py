@@ -197,8 +197,12 @@ def balm_build(shared_data: Path, tmp_path_factory: pytest.TempPathFactory):
         place_spacing=3.0, max_places=10, min_path_length=10.0, wide_baseline_min_distance=5.0,
         workers=2,
     )
-    summary = build_loop_closure_dataset(ds, out, cfg, progress=False)
-    return ds, out, cfg, summary
+    # Through the suite entry point (quick, with the test's smaller config) to cover both.
+    summary = build_suite(
+        "balm_courtyard", out, quick=True, data_root=shared_data, progress=False, config=cfg
+    )
+    assert summary["suite"] == "balm_courtyard" and summary["quick"]
+    return ds, out / "balm_courtyard-quick", cfg, summary
 
 
 def test_balm_build_and_round_trip(balm_build) -> None:
@@ -252,7 +256,8 @@ def test_cache_reuse_and_malformed_files(balm_build, tmp_path: Path) -> None:
 
 
 def test_suites_registry(shared_data: Path, tmp_path: Path) -> None:
-    assert "balm_courtyard" in SUITES
+    assert {"balm_courtyard", "sim-downtown", "sim-suburban", "sim-openroad"} <= set(SUITES)
+    assert suite_config("sim-downtown") == LoopClosureConfig()  # the paper's rules
     cfg = suite_config("balm_courtyard")
     assert cfg.min_path_length == 10.0 and cfg.wide_baseline_min_distance == 5.0
     assert suite_config("balm_courtyard", quick=True).max_places == 12
