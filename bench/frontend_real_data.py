@@ -184,8 +184,12 @@ def main() -> None:
     )
     ap.add_argument("--pairs", type=int, default=12, help="balm_courtyard pairs to sample")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument(
+        "--config-json", default="{}", help='extractor overrides, e.g. \'{"planes": {"min_area": 10}}\''
+    )
+    ap.add_argument("--kitti-only", action="store_true")
     args = ap.parse_args()
-    cfg = LandmarkExtractorConfig()
+    cfg = LandmarkExtractorConfig.model_validate(json.loads(args.config_json))
     ex = LandmarkExtractor(cfg)
     report: dict = {"config": json.loads(cfg.model_dump_json())}
 
@@ -208,7 +212,7 @@ def main() -> None:
     report["kitti"] = {"scans": rows, "pairs": pairs}
 
     balm = args.data / "balm_courtyard"
-    if balm.is_dir():
+    if balm.is_dir() and not args.kitti_only:
         bposes = load_poses(balm)
         bp = balm_pairs(bposes, args.pairs)
         frames = sorted({i for p in bp for i in p})

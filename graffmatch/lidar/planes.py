@@ -32,11 +32,11 @@ class PlaneConfig(BaseModel):
 
     enabled: bool = Field(True, description="Extract plane landmarks (besides the ground).")
     voxel_size: float = Field(
-        0.3,
+        0.4,
         gt=0,
         description="Voxel down-sampling before patch detection; sets speed and detail [m].",
     )
-    normal_knn: int = Field(12, ge=3, description="Neighbours used to estimate point normals.")
+    normal_knn: int = Field(8, ge=3, description="Neighbours used to estimate point normals.")
     normal_variance_threshold_deg: float = Field(
         60.0, gt=0, le=90, description="Open3D: max spread of point normals in a patch [deg]."
     )
@@ -79,7 +79,7 @@ class PlaneConfig(BaseModel):
     )
     min_support: int = Field(30, ge=3, description="Minimum support points of a final plane.")
     min_area: float = Field(
-        3.0, ge=0, description="Minimum area (OBB sides product) of a final plane [m^2]."
+        10.0, ge=0, description="Minimum area (OBB sides product) of a final plane [m^2]."
     )
     max_rms: float = Field(0.1, gt=0, description="Maximum RMS residual of a final plane [m].")
 
