@@ -64,6 +64,21 @@ def repeatability(ls_a: LandmarkSet, ls_b_in_a: LandmarkSet) -> dict[str, float]
     for name, t in (("lines", LandmarkType.LINE), ("planes", LandmarkType.PLANE)):
         sel = ls_a.types == t
         out[name] = float(hit[sel].mean()) if sel.any() else float("nan")
+    # Strict: same direction within 2 deg and the same position within 0.3 m (line: distance of
+    # b's anchor to a's axis; plane: distance of b's anchor to a's plane). The 6 deg invariant
+    # test alone is lenient on position: with rho = 40 m, 1 m of offset costs only ~1.4 deg.
+    strict = np.zeros(len(ls_a), bool)
+    if len(ls_b_in_a):
+        da, db = ls_a.directions, ls_b_in_a.directions
+        ang = np.degrees(np.arccos(np.clip(np.abs(da @ db.T), 0, 1)))
+        q = ls_b_in_a.anchors[None, :, :] - ls_a.anchors[:, None, :]
+        along = np.einsum("ijk,ik->ij", q, da)
+        perp = np.linalg.norm(q - along[..., None] * da[:, None, :], axis=2)
+        is_line = (ls_a.types == LandmarkType.LINE)[:, None]
+        off = np.where(is_line, perp, np.abs(along))
+        same = ls_a.types[:, None] == ls_b_in_a.types[None, :]
+        strict = np.any(same & (ang < 2.0) & (off < 0.3), axis=1)
+    out["strict_all"] = float(strict.mean())
     # Anchors: for matched pairs, how far apart are the anchors (they are not part of the
     # same-landmark distance, but they drive the intra-scan consistency).
     if D.shape[1]:
@@ -82,15 +97,41 @@ def try_match(ls_src: LandmarkSet, ls_tgt: LandmarkSet, T_tgt_src_true: np.ndarr
     t = time.perf_counter()
     res = GraffMatcher().match(ls_src, ls_tgt)
     dt = time.perf_counter() - t
-    rot, tr = transform_errors(res.T_target_source, T_tgt_src_true)
+    if res.T_target_source is None:
+        rot, tr = float("nan"), float("nan")
+    else:
+        rot, tr = transform_errors(res.T_target_source, T_tgt_src_true)
     # correct associations: counterpart within tau after GT alignment
     n_corr = 0
     if len(res.associations):
         src_in_tgt = ls_src.transform(T_tgt_src_true)
         D = cross(src_in_tgt, ls_tgt)
-        a = np.asarray(res.associations)
+        a = np.asarray(res.associations).reshape(-1, 2)
         n_corr = int(np.sum(D[a[:, 0], a[:, 1]] <= np.radians(TAU_DEG)))
+    # Diagnosis: the ground-truth associations (mutual nearest within tau after GT alignment)
+    # and the registration they give. Good here + bad above = a selection (CLIPPER) failure,
+    # not a front-end one.
+    gt_reg = (float("nan"), float("nan"))
+    src_in_tgt = ls_src.transform(T_tgt_src_true)
+    D = cross(src_in_tgt, ls_tgt)
+    gt = np.zeros((0, 2), np.int64)
+    if D.size:
+        j, i2 = D.argmin(axis=1), D.argmin(axis=0)
+        i = np.arange(len(ls_src))
+        keep = (D[i, j] <= np.radians(TAU_DEG)) & (i2[j] == i)
+        gt = np.column_stack([i[keep], j[keep]])
+    try:
+        from graffmatch.registration.closed_form import register_landmarks
+
+        est = register_landmarks(ls_src, ls_tgt, gt)
+        gt_reg = transform_errors(est.T_target_source, T_tgt_src_true)
+    except Exception as exc:
+        gt_reg = (float("nan"), float("nan"))
+        print(f"    (registration on GT associations failed: {exc})")
     return {
+        "n_gt_assoc": len(gt),
+        "gt_assoc_rot_err_deg": float(gt_reg[0]),
+        "gt_assoc_trans_err_m": float(gt_reg[1]),
         "status": "ok",
         "valid": bool(res.valid),
         "rot_err_deg": float(rot),
@@ -163,12 +204,14 @@ def fmt_pair(r: dict) -> str:
     m = r["match"]
     s = (
         f"{r['a']:>3} -> {r['b']:<3} {r['distance_m']:5.1f} m | rep all {rep['all']:.2f} "
-        f"lines {rep.get('lines', float('nan')):.2f} planes {rep.get('planes', float('nan')):.2f}"
+        f"lines {rep.get('lines', float('nan')):.2f} planes {rep.get('planes', float('nan')):.2f} "
+        f"strict {rep.get('strict_all', float('nan')):.2f}"
     )
     if m.get("status") == "ok":
         s += (
             f" | match rot {m['rot_err_deg']:7.2f} deg  trans {m['trans_err_m']:6.2f} m  "
-            f"assoc {m['n_assoc_correct']}/{m['n_assoc']} valid={m['valid']}"
+            f"assoc {m['n_assoc_correct']}/{m['n_assoc']} valid={m['valid']} | GT assoc "
+            f"{m['n_gt_assoc']}: {m['gt_assoc_rot_err_deg']:.2f} deg {m['gt_assoc_trans_err_m']:.2f} m"
         )
     else:
         s += f" | {m.get('status')}"
@@ -185,7 +228,9 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=12, help="balm_courtyard pairs to sample")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument(
-        "--config-json", default="{}", help='extractor overrides, e.g. \'{"planes": {"min_area": 10}}\''
+        "--config-json",
+        default="{}",
+        help='extractor overrides, e.g. \'{"planes": {"min_area": 10}}\'',
     )
     ap.add_argument("--kitti-only", action="store_true")
     args = ap.parse_args()
@@ -228,7 +273,8 @@ def main() -> None:
         for r in res:
             print("  " + fmt_pair(r))
         rep = np.array([r["repeatability"]["all"] for r in res])
-        print(f"  repeatability median {np.nanmedian(rep):.2f}")
+        strict = np.array([r["repeatability"]["strict_all"] for r in res])
+        print(f"  repeatability median {np.nanmedian(rep):.2f} (strict {np.nanmedian(strict):.2f})")
         ok = [r["match"] for r in res if r["match"].get("status") == "ok"]
         if ok:
             rot = np.array([m["rot_err_deg"] for m in ok])
@@ -237,6 +283,12 @@ def main() -> None:
             print(
                 f"  matcher: median rot {np.median(rot):.2f} deg, trans {np.median(tr):.2f} m, "
                 f"success (<5 deg, <1 m) {succ:.2f}"
+            )
+            grot = np.array([m["gt_assoc_rot_err_deg"] for m in ok])
+            gtr = np.array([m["gt_assoc_trans_err_m"] for m in ok])
+            print(
+                f"  registration on GT associations: median rot {np.nanmedian(grot):.2f} deg, "
+                f"trans {np.nanmedian(gtr):.2f} m, success {np.mean((grot < 5) & (gtr < 1)):.2f}"
             )
         report["balm"] = {"scans": brows, "pairs": res}
     if args.json:
