@@ -277,6 +277,10 @@ def test_same_seed_gives_identical_bytes(dataset, tmp_path):
     assert len(files) == 2 * 8 + 4
     for f in files:
         assert (out / f).read_bytes() == (again / f).read_bytes(), f
+    # reuse keeps a finished identical simulation untouched, and redoes a different request
+    stamp = (out / "velodyne/000000.bin").stat().st_mtime_ns
+    simulate_dataset(out, style="open-road", seed=5, n_scans=8, reuse=True)
+    assert (out / "velodyne/000000.bin").stat().st_mtime_ns == stamp
     other = simulate_dataset(tmp_path / "other", style="open-road", seed=6, n_scans=8)
     assert (out / "velodyne/000000.bin").read_bytes() != (
         other / "velodyne/000000.bin"
