@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation.methods import (
@@ -435,3 +437,17 @@ def test_landmark_methods_report_no_estimate_on_too_few_landmarks(
     out = get_method(name).run(pair)
     assert out.T_target_source is None and not out.valid
     assert len(out.associations) == 0 and out.timings["total"] >= 0
+
+
+@given(st.integers(0, 59))
+@settings(max_examples=15, deadline=None)
+def test_scan_context_shift_is_the_rotation_in_sectors(k: int) -> None:
+    from graffmatch.evaluation.baselines.scan_context import sc_distance, scan_context
+
+    P = _BOXES
+    R = make_transform(rot_z(np.radians(6.0 * k)), np.zeros(3))
+    _, shift, _ = sc_distance(scan_context(P), scan_context(transform_points(R, P)))
+    assert shift == k
+
+
+_BOXES = box_world(7, n_boxes=10, density=6.0)

@@ -196,3 +196,9 @@ def test_lmr_metric_result() -> None:
     assert res.statistics["auc"] == pytest.approx(OIRS.mean())
     assert np.allclose(res.arrays["oir"], OIRS)
     assert res.arrays["lmr_curve"][0] == pytest.approx(0.75)
+
+
+@given(st.lists(st.floats(0.0, 1.0), min_size=1, max_size=40))
+def test_lmr_curve_is_non_increasing_and_bounded(oirs: list[float]) -> None:
+    _, curve = M.lmr_curve(oirs)
+    assert np.all(np.diff(curve) <= 0) and curve[0] <= 1 and curve[-1] == 0.0
