@@ -76,3 +76,43 @@ def test_repeatability_after_gt_alignment(kitti, other: int, min_rep: float) -> 
     )
     hit_wrong = dist.cross_distances(lss[0], wrong, rho=40.0).min(axis=1) <= np.radians(6.0)
     assert hit_wrong.mean() < 0.5 * hit.mean()
+
+
+def _gt_associations(src_in_tgt, tgt, dist) -> np.ndarray:
+    D = dist.cross_distances(src_in_tgt, tgt, rho=40.0)
+    j, i2 = D.argmin(axis=1), D.argmin(axis=0)
+    i = np.arange(len(src_in_tgt))
+    keep = (D[i, j] <= np.radians(6.0)) & (i2[j] == i)
+    return np.column_stack([i[keep], j[keep]])
+
+
+def test_gt_associations_register_frame5_to_frame0(kitti) -> None:
+    """The landmarks themselves support registration: with the ground-truth associations the
+    closed-form line/plane registration recovers 0 <- 5 (4.3 m) within 2 deg and 1 m."""
+    dist = pytest.importorskip("graffmatch.geometry.distance")
+    closed_form = pytest.importorskip("graffmatch.registration.closed_form")
+    folder, lss = kitti
+    P = _lidar_poses(folder)
+    T_true = invert(P[0]) @ P[5]
+    gt = _gt_associations(lss[5].transform(T_true), lss[0], dist)
+    assert len(gt) >= 8
+    est = closed_form.register_landmarks(lss[5], lss[0], gt)
+    from graffmatch.geometry.transforms import transform_errors
+
+    rot, trans = transform_errors(est.T_target_source, T_true)
+    assert rot < 2.0 and trans < 1.0
+
+
+@pytest.mark.parametrize("other", [3, 5])
+def test_end_to_end_match_with_extra_motion(kitti, other: int) -> None:
+    """Extract, then GraffMatcher on 0 <- other after 180 deg yaw + 10 m: within 3 deg, 1.5 m."""
+    matcher = pytest.importorskip("graffmatch.matcher")
+    from graffmatch.geometry.transforms import transform_errors
+
+    folder, lss = kitti
+    P = _lidar_poses(folder)
+    X = make_transform(rot_z(np.pi), np.array([10.0, 0.0, 0.0]))
+    res = matcher.GraffMatcher().match(lss[other].transform(X), lss[0])
+    assert res.valid and res.T_target_source is not None
+    rot, trans = transform_errors(res.T_target_source, invert(P[0]) @ P[other] @ invert(X))
+    assert rot < 3.0 and trans < 1.5
