@@ -147,8 +147,8 @@ def read_transform(arg: str) -> NDArray[np.float64]:
             mat = data.get("T_target_source", data) if isinstance(data, dict) else data
             return parse_transform(json.dumps(mat), str(path))
         return parse_transform(path.read_text(), str(path))
-    if len(_NUMBER.findall(arg)) in (12, 16):
-        return parse_transform(arg, "--gt")
+    if re.fullmatch(r"[\d\s.,;eE+\-\[\]]+", arg) and _NUMBER.search(arg):
+        return parse_transform(arg, "--gt")  # inline numbers (says so if their count is wrong)
     raise MalformedFileError(f"{arg}: ground-truth transform file not found")
 
 

@@ -200,7 +200,7 @@ def demo(
 
     t0 = time.perf_counter()
     with err.status("running the demo ...", spinner="dots") if not STATE.quiet else _null():
-        report = run_demo(seed=seed, mode=mode)
+        report = run_demo(seed=seed, mode=mode, config=STATE.settings.matcher)
     debug(f"demo finished in {time.perf_counter() - t0:.2f} s")
     out.print(report)
     if not report.passed:
@@ -398,7 +398,7 @@ def register(
     if pose_out is not None and pose_format is None:
         pose_format = PoseFormatChoice.kitti if pose_out.suffix != ".tum" else PoseFormatChoice.tum
     holder: list = []
-    steps = 3 + (refine == RefineChoice.icp) + (view is not None)
+    steps = 3 + (refine == RefineChoice.icp)
     with make_progress() as progress:
         task = progress.add_task("registering", total=steps)
         with stage(progress, task, f"reading {source.name}"):
@@ -409,10 +409,11 @@ def register(
             from graffmatch.matcher import GraffMatcher
 
             result = GraffMatcher(settings.matcher).match(src.landmarks, tgt.landmarks)
-        T_est = np.asarray(result.T_target_source, float)
+        T_matcher = result.T_target_source
+        T_est = None if T_matcher is None else np.asarray(T_matcher, float)
         assoc = np.asarray(result.associations, dtype=np.int64).reshape(-1, 2)
         refine_info = None
-        if refine == RefineChoice.icp:
+        if refine == RefineChoice.icp and T_est is not None:
             with stage(progress, task, "ICP refinement"):
                 refine_info = _refine_icp(src.landmarks, tgt.landmarks, assoc, T_est, result)
                 T_est = refine_info["T_target_source"]
@@ -454,7 +455,7 @@ def register(
         "landmarks": {k: path_record(v, folder) for k, v in lm_paths.items()},
         "counts": {"source": src.landmarks.counts(), "target": tgt.landmarks.counts()},
         "T_target_source": T_est,
-        "T_target_source_matcher": np.asarray(result.T_target_source, float),
+        "T_target_source_matcher": T_matcher,
         "associations": assoc,
         "weights": np.asarray(getattr(result, "weights", np.zeros(0)), float),
         "score": float(getattr(result, "score", float("nan"))),
@@ -479,7 +480,7 @@ def register(
     else:
         _write_config_beside(result_path)
     pose_written = None
-    if pose_format is not None:
+    if pose_format is not None and T_est is not None:
         suffix = ".kitti.txt" if pose_format == PoseFormatChoice.kitti else ".tum.txt"
         pose_written = write_pose_file(
             pose_out or result_path.with_suffix(suffix), T_est, pose_format.value
@@ -492,7 +493,7 @@ def register(
             view,
             src.landmarks,
             tgt.landmarks,
-            T_est,
+            np.eye(4) if T_est is None else T_est,
             assoc,
             source_points=src.points,
             target_points=tgt.points,
@@ -566,7 +567,10 @@ def _ground_truth_report(src, tgt, assoc, T_est, T_gt) -> tuple[dict, np.ndarray
     from graffmatch.geometry.transforms import transform_errors
 
     cfg = STATE.settings.ground_truth
-    rot, trans = transform_errors(T_est, T_gt)
+    if T_est is None:  # no estimate: the pair fails, as in the evaluation
+        rot, trans = float("inf"), float("inf")
+    else:
+        rot, trans = transform_errors(T_est, T_gt)
     d = association_distances_deg(src, tgt, assoc, T_gt) if len(assoc) else np.zeros(0)
     mask = d < cfg.tau_d_deg
     return (
@@ -586,7 +590,8 @@ def _ground_truth_report(src, tgt, assoc, T_est, T_gt) -> tuple[dict, np.ndarray
 
 def _print_register(data, src, tgt, result_path, pose_written, view_written) -> None:
     if STATE.quiet:
-        out.print(" ".join(f"{v:.9g}" for v in np.asarray(data["T_target_source"])[:3].ravel()))
+        T = data["T_target_source"]
+        out.print("none" if T is None else " ".join(f"{v:.9g}" for v in np.asarray(T)[:3].ravel()))
         return
     names = {0: "point", 1: "pole", 2: "plane"}
     out.print(
@@ -617,10 +622,12 @@ def _print_register(data, src, tgt, result_path, pose_written, view_written) -> 
                 row += [f"{dk:.2f}°", "[green]✓[/green]" if ok else "[red]✗[/red]"]
             table.add_row(*row)
         out.print(table)
-    T = np.asarray(data["T_target_source"])
-    out.print("[bold]T_target_source[/bold]")
-    for r in T:
-        out.print("  " + " ".join(f"{v:+10.5f}" for v in r))
+    if data["T_target_source"] is None:
+        out.print("[bold]T_target_source[/bold]: none (no estimate)")
+    else:
+        out.print("[bold]T_target_source[/bold]")
+        for r in np.asarray(data["T_target_source"]):
+            out.print("  " + " ".join(f"{v:+10.5f}" for v in r))
     verdict = "[green]valid[/green]" if data["valid"] else "[red]NOT valid[/red]"
     out.print(
         f"associations {len(assoc)}  score {data['score']:.3f}  κ {data['kappa']:.3g}  "
@@ -701,7 +708,9 @@ def view(
         out_path,
         lms["source"],
         lms["target"],
-        np.asarray(data["T_target_source"], float),
+        np.eye(4)
+        if data["T_target_source"] is None
+        else np.asarray(data["T_target_source"], float),
         np.asarray(data["associations"], np.int64).reshape(-1, 2),
         source_points=points["source"],
         target_points=points["target"],

@@ -1,0 +1,358 @@
+"""Smoke tests of every ``graffmatch`` subcommand through the real CLI (typer's runner, in process).
+
+Each test checks numbers, not only exit codes: the transforms written equal the library's, the
+errors reported equal the errors recomputed, files round-trip.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from importlib.metadata import version
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from graffmatch.cli.inputs import read_pose_line
+from graffmatch.cli.main import app
+from graffmatch.geometry.landmarks import LandmarkSet
+from graffmatch.geometry.transforms import transform_errors
+from tests.viz.conftest import make_scene
+
+RUNNER = CliRunner()
+
+
+def run(*args: str, env: dict | None = None, code: int | None = 0):
+    res = RUNNER.invoke(app, [str(a) for a in args], env=env)
+    if code is not None:
+        assert res.exit_code == code, (
+            f"exit {res.exit_code}\nstdout:\n{res.stdout}\nstderr:\n{res.stderr}\n{res.exception!r}"
+        )
+    return res
+
+
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory) -> dict:
+    """Landmark files of a synthetic street seen from two poses 180° / 14 m apart."""
+    d = tmp_path_factory.mktemp("synth")
+    sc = make_scene()
+    src = sc.source.save(d / "source.npz", include_points=True)
+    tgt = sc.target.save(d / "target.npz", include_points=True)
+    np.savetxt(d / "gt.txt", sc.T_target_source)
+    return {"dir": d, "source": src, "target": tgt, "gt": d / "gt.txt", "T": sc.T_target_source}
+
+
+@pytest.fixture(scope="module")
+def kitti(shared_data) -> dict:
+    from graffmatch.datasets.folder import KittiFolder
+
+    root = shared_data / "kitti00_first6"
+    ds = KittiFolder(root)
+    L = ds.poses
+    return {"root": root, "scans": sorted((root / "velodyne").glob("*.bin")), "L": L}
+
+
+# ---- global behaviour ---------------------------------------------------------------------------
+def test_version_and_help():
+    assert run("--version").stdout.strip() == f"graffmatch {version('graffmatch')}"
+    text = run("--help").stdout
+    for cmd in (
+        "demo",
+        "extract",
+        "register",
+        "view",
+        "simulate",
+        "build-dataset",
+        "benchmark",
+        "report",
+        "calibrate",
+        "config",
+    ):
+        assert cmd in text
+    assert "Examples" in text and "Exit codes" in text
+    assert "Examples" in run("register", "--help").stdout
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ("register", "missing_a.npz", "missing_b.npz"),
+        ("extract", "missing.bin"),
+        ("view", "missing.json"),
+        ("--config", "missing.yaml", "config", "dump"),
+        ("report", "missing_folder"),
+    ],
+)
+def test_missing_files_give_one_clear_line(tmp_path, monkeypatch, args):
+    monkeypatch.chdir(tmp_path)
+    res = run(*args, code=1)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, res.stderr
+    assert lines[0].startswith("error") and "missing" in lines[0]
+    assert "Traceback" not in res.output
+    assert not (tmp_path / "runs").exists()  # nothing half-written
+
+
+def test_verbose_shows_the_exception(tmp_path, monkeypatch):
+    from graffmatch.errors import MalformedFileError
+
+    monkeypatch.chdir(tmp_path)
+    res = run("-v", "register", "a.npz", "b.npz", code=None)
+    assert res.exit_code != 0 and isinstance(res.exception, MalformedFileError)
+
+
+def test_bad_gt_and_bad_usage(synth):
+    res = run("register", synth["source"], synth["target"], "--gt", "1 2 3", code=1)
+    assert "12 (3x4) or 16 (4x4)" in res.stderr
+    run("register", synth["source"], code=2)  # missing argument: click's usage error
+
+
+# ---- configuration --------------------------------------------------------------------------------
+def test_config_dump_yaml_roundtrip_and_env(tmp_path):
+    text = run("config", "dump").stdout
+    data = yaml.safe_load(text)
+    assert data["matcher"]["rho"] == 40.0 and data["matcher"]["epsilon"] == 0.2
+    assert data["extractor"]["poles"]["semantic_classes"] == [80, 81, 71]
+    assert "# " in text  # documented
+    data["matcher"]["rho"] = 20.0
+    data["icp"]["max_iterations"] = 7
+    cfg = tmp_path / "my.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    again = yaml.safe_load(run("--config", cfg, "config", "dump").stdout)
+    assert again == data  # everything else kept its value
+    run("config", "check", cfg)
+    env = yaml.safe_load(
+        run("--config", cfg, "config", "dump", env={"GRAFFMATCH_MATCHER__RHO": "25"}).stdout
+    )
+    assert env["matcher"]["rho"] == 25.0 and env["icp"]["max_iterations"] == 7
+    bad = run("config", "dump", env={"GRAFFMATCH_MATCHER__RHO": "-1"}, code=1)
+    assert "matcher.rho" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    typo = run("config", "dump", env={"GRAFFMATCH_MATCHER__RHOO": "3"}, code=1)
+    assert "matcher.rhoo" in typo.stderr
+    cfg.write_text("matcher: [1, 2]\n")
+    assert "matcher" in run("config", "check", cfg, code=1).stderr
+
+
+# ---- register / view ----------------------------------------------------------------------------
+def test_register_landmark_files_with_ground_truth(synth, tmp_path):
+    from graffmatch.matcher import GraffMatcher
+
+    out = tmp_path / "res" / "result.json"
+    res = run(
+        "register",
+        synth["source"],
+        synth["target"],
+        "--gt",
+        synth["gt"],
+        "-o",
+        out,
+        "--pose-format",
+        "tum",
+        "--view",
+        tmp_path / "v.html",
+    )
+    data = json.loads(out.read_text())
+    T = np.asarray(data["T_target_source"])
+    # the CLI reports exactly what the library computes ...
+    direct = GraffMatcher().match(
+        LandmarkSet.load(synth["source"]), LandmarkSet.load(synth["target"])
+    )
+    np.testing.assert_allclose(T, direct.T_target_source, atol=1e-12)
+    np.testing.assert_array_equal(data["associations"], direct.associations)
+    # ... recovers the 180° / 14 m transform of the noise-free scene ...
+    rot, trans = transform_errors(T, synth["T"])
+    assert rot < 0.5 and trans < 0.05 and data["valid"]
+    gt = data["ground_truth"]
+    assert gt["rotation_error_deg"] == pytest.approx(rot, abs=1e-9)
+    assert gt["translation_error_m"] == pytest.approx(trans, abs=1e-9)
+    assert gt["success"] and gt["n_inliers"] == sum(gt["inlier_mask"]) >= 10
+    # ... prints them, writes the pose line, the config and the view.
+    assert f"{rot:.3f}°" in res.stdout and "inliers" in res.stdout
+    pose = out.with_suffix(".tum.txt").read_text().strip()
+    np.testing.assert_allclose(read_pose_line(pose, "tum"), T, atol=1e-6)
+    assert yaml.safe_load(out.with_name("result.config.yaml").read_text())["matcher"]["rho"] == 40
+    html = (tmp_path / "v.html").read_text()
+    assert "data-graffmatch-rendered" in html and "inliers (" in html
+    # determinism: the same command again gives the same transform
+    run("register", synth["source"], synth["target"], "-o", tmp_path / "again.json")
+    T2 = np.asarray(json.loads((tmp_path / "again.json").read_text())["T_target_source"])
+    np.testing.assert_array_equal(T, T2)
+    # quiet mode prints the 12 numbers of the 3x4 only
+    q = run("-q", "register", synth["source"], synth["target"], "-o", tmp_path / "q.json")
+    np.testing.assert_allclose(np.fromstring(q.stdout, sep=" "), T[:3].ravel(), atol=1e-8)
+
+    # graffmatch view redraws the saved result
+    run("view", out, "-o", tmp_path / "again.html")
+    again = (tmp_path / "again.html").read_text()
+    assert "inliers (" in again and "data-graffmatch-rendered" in again
+
+
+def test_register_kitti_pose_and_icp_refinement(synth, tmp_path):
+    pytest.importorskip("graffmatch.registration.icp")
+    out = tmp_path / "icp.json"
+    run(
+        "register",
+        synth["source"],
+        synth["target"],
+        "--gt",
+        synth["gt"],
+        "-o",
+        out,
+        "--refine",
+        "icp",
+        "--pose-format",
+        "kitti",
+        "--pose-out",
+        tmp_path / "T.txt",
+    )
+    data = json.loads(out.read_text())
+    ref = data["refine"]
+    assert ref["method"] == "icp" and ref["fitness"] > 0.9
+    T = np.asarray(data["T_target_source"])
+    np.testing.assert_allclose(T, ref["T_target_source"])
+    rot, trans = transform_errors(T, synth["T"])
+    assert rot < 0.5 and trans < 0.05
+    line = (tmp_path / "T.txt").read_text().strip()
+    assert len(line.split()) == 12
+    np.testing.assert_allclose(read_pose_line(line, "kitti"), T, atol=1e-8)
+
+
+def test_icp_without_support_points_is_a_clear_error(synth, tmp_path):
+    pytest.importorskip("graffmatch.registration.icp")
+    bare = LandmarkSet.load(synth["source"]).without_points().save(tmp_path / "bare.npz")
+    res = run(
+        "register", bare, synth["target"], "--refine", "icp", "-o", tmp_path / "r.json", code=1
+    )
+    assert "support points" in res.stderr
+
+
+def test_extract_and_register_real_scans(kitti, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    s0, s5 = kitti["scans"][0], kitti["scans"][5]
+    res = run("extract", s0, "-o", tmp_path / "lm0.npz")
+    ls0 = LandmarkSet.load(tmp_path / "lm0.npz")
+    c = ls0.counts()
+    assert c["lines"] >= 2 and c["planes"] >= 5
+    assert f"{c['lines']} poles, {c['planes']} planes" in res.stdout
+    assert (tmp_path / "lm0.npz").stat().st_size < 20_000  # compact without points
+
+    L = kitti["L"]
+    T_gt = np.linalg.inv(L[5]) @ L[0]
+    np.savetxt(tmp_path / "gt.txt", T_gt)
+    res = run("register", s0, s5, "--gt", tmp_path / "gt.txt", code=None)
+    assert res.exit_code in (0, 3), res.output
+    (folder,) = list((tmp_path / "runs").glob("*_register"))
+    data = json.loads((folder / "result.json").read_text())
+    assert (folder / "config.yaml").is_file()
+    assert data["valid"] == (res.exit_code == 0)
+    # landmarks of the scans were saved (with points) next to the result, and are the same
+    saved = LandmarkSet.load(folder / "result_source_landmarks.npz")
+    assert saved.points is not None and saved.approx_equal(ls0)
+    if data["T_target_source"] is not None:
+        rot, trans = transform_errors(np.asarray(data["T_target_source"]), T_gt)
+        assert data["ground_truth"]["rotation_error_deg"] == pytest.approx(rot, abs=1e-9)
+        assert data["ground_truth"]["translation_error_m"] == pytest.approx(trans, abs=1e-9)
+    # the result folder can move: view finds its files through relative paths
+    moved = tmp_path / "moved"
+    shutil.copytree(folder, moved)
+    shutil.rmtree(folder)
+    run("view", moved / "result.json", "--no-points")
+    assert (moved / "result.html").stat().st_size > 1_000_000
+
+
+def test_extract_folder(kitti, tmp_path):
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    for p in kitti["scans"][:2]:
+        shutil.copy(p, scans / p.name)
+    run("extract", scans, "-o", tmp_path / "lm", "--with-points")
+    summary = json.loads((tmp_path / "lm" / "summary.json").read_text())
+    assert [Path(r["scan"]).name for r in summary["scans"]] == ["000000.bin", "000001.bin"]
+    for r in summary["scans"]:
+        ls = LandmarkSet.load(r["landmarks"])
+        assert ls.points is not None
+        assert (r["poles"], r["planes"]) == (ls.counts()["lines"], ls.counts()["planes"])
+    assert (tmp_path / "lm" / "config.yaml").is_file()
+
+
+# ---- datasets, evaluation, calibration, demo ------------------------------------------------------
+def test_simulate_tiny(tmp_path):
+    out = tmp_path / "sim"
+    run("simulate", out, "--scans", "2", "--sensor", "vlp16", "--style", "suburban")
+    bins = sorted((out / "velodyne").glob("*.bin"))
+    assert len(bins) == 2
+    pts = np.fromfile(bins[0], np.float32).reshape(-1, 4)
+    assert len(pts) > 1000
+    assert len((out / "poses.txt").read_text().splitlines()) == 2
+    res = run("simulate", out, "--scans", "2", "--sensor", "vlp16", code=1)  # not empty
+    assert "overwrite" in res.stderr
+    run("simulate", out, "--style", "nowhere", code=1)
+
+
+def test_build_dataset_benchmark_and_report(kitti, tmp_path):
+    from graffmatch.datasets.folder import KittiFolder
+    from graffmatch.evaluation.loop_closures import LoopClosureConfig
+    from graffmatch.evaluation.suites import SUITES, Suite, register_suite
+
+    cfg = LoopClosureConfig(place_spacing=0.8, min_path_length=0.0, max_pairs=2, workers=1)
+    register_suite(
+        Suite(
+            "cli-tiny-kitti",
+            "KITTI 00 first scans, short revisits (CLI test)",
+            lambda d, q, r: KittiFolder(kitti["root"]),
+            cfg,
+            {},
+        ),
+        overwrite=True,
+    )
+    try:
+        assert "cli-tiny-kitti" in run("build-dataset", "--list").stdout
+        run("build-dataset", "cli-tiny-kitti", "-o", tmp_path / "data")
+        summary = json.loads((tmp_path / "data" / "cli-tiny-kitti" / "summary.json").read_text())
+        assert summary["n_valid"] >= 1
+        run(
+            "benchmark",
+            "cli-tiny-kitti",
+            "-o",
+            tmp_path / "bench",
+            "--executor",
+            "serial",
+            "-m",
+            "GraffMatch",
+            "--data-dir",
+            tmp_path / "data",
+        )
+        assert (tmp_path / "bench" / "config.yaml").is_file()
+        assert (tmp_path / "bench" / "report" / "table1.md").is_file()
+        run("report", tmp_path / "bench" / "results", "-o", tmp_path / "rep")
+        assert "GraffMatch" in (tmp_path / "rep" / "table1.md").read_text()
+    finally:
+        SUITES.pop("cli-tiny-kitti", None)
+
+
+def test_calibrate_demo_and_files(tmp_path):
+    from graffmatch.calibration.rig import make_lidar_lidar_scenario
+
+    res = run("calibrate", "--demo", "--kind", "camera-depth", "-o", tmp_path / "cd.json")
+    rep = json.loads((tmp_path / "cd.json").read_text())["camera-depth"]
+    assert rep["within_bounds"] and rep["rotation_error_deg"] <= 1.0
+    assert "error vs truth" in res.stdout
+
+    sc = make_lidar_lidar_scenario(1)
+    np.save(tmp_path / "a.npy", sc.cloud_a)
+    np.save(tmp_path / "b.npy", sc.cloud_b)
+    run("calibrate", tmp_path / "a.npy", tmp_path / "b.npy", "-o", tmp_path / "ab.json")
+    data = json.loads((tmp_path / "ab.json").read_text())
+    T = np.asarray(next(v for k, v in data.items() if k.startswith("T_")))
+    rot, trans = transform_errors(T, sc.T_b_a)
+    assert rot <= 1.0 and trans <= 0.05
+    run("calibrate", code=1)  # neither files nor --demo
+
+
+def test_demo_exit_code_follows_its_verdict():
+    res = run("demo", "--mode", "landmarks", code=None)
+    assert "rotation error" in res.stdout
+    assert res.exit_code == (0 if "PASS" in res.stdout else 3)
