@@ -25,6 +25,7 @@ best a landmark-only registration can do and the first column of the error heatm
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import os
 import platform
@@ -155,6 +156,7 @@ class Task:
     pair_id: str
     method: str | EvaluationMethod
     pair: Any  # a LoopClosurePair or a PairRef
+    task_key: str  # fingerprint of the pair content and evaluation settings (see _task_key)
     tau_d_deg: float
     rho_eval: float
     max_rotation_deg: float
@@ -248,11 +250,13 @@ def _run_registry_method(spec: str, pair: Any) -> Any:
     from graffmatch.evaluation import methods as registry
 
     method = _registry_method(spec)
+    # LoopClosurePair.source_scan is the scan *index*; only arrays are raw points.
+    src_pts, tgt_pts = getattr(pair, "source_scan", None), getattr(pair, "target_scan", None)
     inp = registry.PairInput(
         source=pair.source,
         target=pair.target,
-        source_scan=getattr(pair, "source_scan", None),
-        target_scan=getattr(pair, "target_scan", None),
+        source_scan=src_pts if isinstance(src_pts, np.ndarray) else None,
+        target_scan=tgt_pts if isinstance(tgt_pts, np.ndarray) else None,
         source_scan_path=getattr(pair, "source_scan_path", None),
         target_scan_path=getattr(pair, "target_scan_path", None),
     )
@@ -344,6 +348,7 @@ def execute_task(task: Task) -> dict[str, Any]:
         M._jsonable(
             {
                 "record_version": RECORD_VERSION,
+                "task_key": task.task_key,
                 "suite": task.suite,
                 "case": int(getattr(pair, "case", 0)),
                 "iir": float(getattr(pair, "iir", np.nan)),
@@ -401,13 +406,38 @@ def _read_record(path: Path) -> dict[str, Any] | None:
     return doc if isinstance(doc, dict) and doc.get("record_version") == RECORD_VERSION else None
 
 
-def load_records(results_dir: str | Path) -> list[dict[str, Any]]:
-    """Every record of a results folder, sorted by (suite, method, pair_id)."""
+def load_records(results_dir: str | Path, current_only: bool = True) -> list[dict[str, Any]]:
+    """The records of a results folder, sorted by (suite, method, pair_id).
+
+    ``current_only``: keep only records of the pairs selected by the last run (``pairs/``),
+    computed on the same pair content and settings; stale records of a rebuilt dataset or of a
+    larger earlier selection stay on disk but are not reported.
+    """
     root = Path(results_dir) / "records"
     if not root.is_dir():
         raise MalformedFileError(f"{results_dir} is not a results folder (no records/)")
     out = [r for p in sorted(root.glob("*/*/*.json")) if (r := _read_record(p)) is not None]
+    if current_only:
+        keys = _current_task_keys(Path(results_dir))
+        if keys is not None:
+            out = [
+                r for r in out if keys.get((slug(r["suite"]), r["pair_id"])) == r.get("task_key")
+            ]
     out.sort(key=lambda r: (r["suite"], r["method"], r["pair_id"]))
+    return out
+
+
+def _current_task_keys(results_dir: Path) -> dict[tuple[str, str], str] | None:
+    """(suite slug, pair_id) -> task key of the latest selection per suite; None if unknown."""
+    cfg = load_config(results_dir)
+    pairs_dir = results_dir / "pairs"
+    if not cfg.get("study") or not pairs_dir.is_dir():
+        return None
+    study = StudyConfig.model_validate(cfg["study"])
+    out: dict[tuple[str, str], str] = {}
+    for f in sorted(pairs_dir.glob("*.json")):
+        for meta in json.loads(f.read_text()):
+            out[(f.stem, str(meta["pair_id"]))] = _task_key(str(meta.get("fingerprint")), study)
     return out
 
 
@@ -441,11 +471,38 @@ def _pair_id(pair: Any, index: int) -> str:
     return f"{index:06d}"
 
 
+def pair_fingerprint(pair: Any) -> str:
+    """Hash of what defines a pair (ground truth, true matches, case, both landmark sets).
+
+    A record is reused on resume only if the pair it was computed on is unchanged: a rebuilt
+    dataset may keep pair ids while their landmarks or cases change.
+    """
+    h = hashlib.sha1()
+    for a in (
+        np.round(np.asarray(pair.T_target_source, dtype=float), 9),
+        np.asarray(pair.true_matches, dtype=np.int64),
+        np.asarray([int(getattr(pair, "case", 0))]),
+    ):
+        h.update(np.ascontiguousarray(a).tobytes())
+    for ls in (pair.source, pair.target):
+        h.update(np.ascontiguousarray(ls.types).tobytes())
+        h.update(np.ascontiguousarray(np.round(ls.anchors, 9)).tobytes())
+        h.update(np.ascontiguousarray(np.round(ls.bases, 9)).tobytes())
+        h.update(str(None if ls.points is None else ls.points.shape).encode())
+    return h.hexdigest()[:16]
+
+
+def _task_key(fingerprint: str, cfg: StudyConfig) -> str:
+    params = (cfg.tau_d_deg, cfg.rho_eval, cfg.max_rotation_deg, cfg.max_translation_m)
+    return hashlib.sha1(f"{fingerprint}|{params!r}".encode()).hexdigest()[:16]
+
+
 def _pair_meta(pair: Any, pair_id: str) -> dict[str, Any]:
     src, tgt = pair.source, pair.target
     return M._jsonable(
         {
             "pair_id": pair_id,
+            "fingerprint": pair_fingerprint(pair),
             "case": int(getattr(pair, "case", 0)),
             "iir": float(getattr(pair, "iir", np.nan)),
             "distance": float(getattr(pair, "distance", np.nan)),
@@ -678,8 +735,13 @@ def run_study(
                 specs += rho_specs
             for spec in specs:
                 mname = spec if isinstance(spec, str) else str(spec.name)
+                key = _task_key(e.meta["fingerprint"], cfg)
                 rec = _read_record(record_path(out, name, mname, e.pair_id))
-                if rec is not None and (rec.get("status") == "ok" or not cfg.retry_errors):
+                if (
+                    rec is not None
+                    and rec.get("task_key") == key
+                    and (rec.get("status") == "ok" or not cfg.retry_errors)
+                ):
                     n_done_before += 1
                     continue
                 tasks.append(
@@ -688,6 +750,7 @@ def run_study(
                         pair_id=e.pair_id,
                         method=spec,
                         pair=e.ref,
+                        task_key=key,
                         tau_d_deg=cfg.tau_d_deg,
                         rho_eval=cfg.rho_eval,
                         max_rotation_deg=cfg.max_rotation_deg,

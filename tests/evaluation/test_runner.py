@@ -421,3 +421,29 @@ def test_compare_runs(tmp_path: Path) -> None:
     assert "Δrecall" in format_comparison(rows)
     same = compare_runs(a, a)
     assert all(r["recall_delta"] == 0.0 and r["auc_delta"] == 0.0 for r in same)
+
+
+def test_changed_pairs_are_recomputed_and_stale_records_not_reported(tmp_path: Path) -> None:
+    cfg = StudyConfig(rho_values=[])
+    pairs = make_pairs(3)
+    out = run_study({"s": pairs}, [Scripted()], tmp_path, "serial", progress=False, config=cfg)
+    # the dataset is rebuilt: same ids, but pair p001 now has other landmarks and case
+    rebuilt = make_pairs(3)
+    rebuilt[1] = make_pairs(2, seed=99)[1]
+    rebuilt[1].pair_id, rebuilt[1].case = "p001", 3
+    redone: list[str] = []
+    run_study(
+        {"s": rebuilt[:2]},
+        [Scripted()],
+        out,
+        "serial",
+        progress=False,
+        config=cfg,
+        on_record=lambda d: redone.append(d["pair_id"]),
+    )
+    assert redone == ["p001", "p001"]  # GT-matches and Scripted, only for the changed pair
+    recs = load_records(out)
+    # p002 is no longer selected: its records stay on disk but are not reported
+    assert sorted({r["pair_id"] for r in recs}) == ["p000", "p001"]
+    assert len(load_records(out, current_only=False)) == 6
+    assert {r["case"] for r in recs if r["pair_id"] == "p001"} == {3}
