@@ -233,6 +233,12 @@ def main() -> None:
         help='extractor overrides, e.g. \'{"planes": {"min_area": 10}}\'',
     )
     ap.add_argument("--kitti-only", action="store_true")
+    ap.add_argument(
+        "--balm-preset",
+        choices=["default", "short_range"],
+        default="short_range",
+        help="extractor preset for balm_courtyard (short_range: LandmarkExtractorConfig.short_range())",
+    )
     args = ap.parse_args()
     cfg = LandmarkExtractorConfig.model_validate(json.loads(args.config_json))
     ex = LandmarkExtractor(cfg)
@@ -261,7 +267,12 @@ def main() -> None:
         bposes = load_poses(balm)
         bp = balm_pairs(bposes, args.pairs)
         frames = sorted({i for p in bp for i in p})
-        blss, brows = extract_all(balm, frames, ex)
+        bex = ex
+        if args.balm_preset == "short_range":
+            bex = LandmarkExtractor(LandmarkExtractorConfig.short_range())
+        report["balm_config"] = json.loads(bex.config.model_dump_json())
+        print(f"== balm_courtyard extractor preset: {args.balm_preset}")
+        blss, brows = extract_all(balm, frames, bex)
         res = [evaluate_pair(blss, bposes, a, b) for a, b in bp]
         print(f"== balm_courtyard: {len(frames)} scans, {len(bp)} pairs 5-16 m apart")
         lines = np.array([r["lines"] for r in brows])

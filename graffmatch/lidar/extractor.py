@@ -64,6 +64,13 @@ class LandmarkExtractorConfig(BaseModel):
         default_factory=PlaneConfig, description="Planar patches and merging."
     )
 
+    @classmethod
+    def short_range(cls) -> LandmarkExtractorConfig:
+        """Preset for short-range scenes (hand-held / indoor, median range ~5-10 m, e.g.
+        balm_courtyard): finer voxels and smaller planes, so that doors, recesses and pillars
+        add landmarks that break the symmetry of a few large walls; operator closer than 1 m."""
+        return cls(min_range=1.0, planes=PlaneConfig(voxel_size=0.25, min_area=3.0))
+
     def config_hash(self) -> str:
         """Stable hash of every field (used as part of the landmark-cache key)."""
         return hashlib.sha256(self.model_dump_json().encode()).hexdigest()[:16]
