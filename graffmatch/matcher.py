@@ -47,6 +47,15 @@ class GraffMatchConfig(BaseModel):
     weighted_registration: bool = Field(
         True, description="weight the least squares by the solver's u entries"
     )
+    reject_residual_m: float | None = Field(
+        1.0,
+        description=(
+            "after a first registration, drop selected associations whose offset residual "
+            "exceeds this [m] (or whose angle residual exceeds reject_residual_deg) and "
+            "register again; None disables. The solver's associations are reported unchanged."
+        ),
+    )
+    reject_residual_deg: float = Field(5.0, gt=0, description="angle residual gate [deg]")
 
 
 @dataclass
@@ -152,9 +161,7 @@ def match_with_distances(
         return MatchResult(None, kappa=np.inf, degenerate=True, valid=False,
                            message="no consistent associations", timings=timings, **common)
     try:
-        est = register_landmarks(
-            source, target, assoc, weights if cfg.weighted_registration else None, cfg.kappa_max
-        )
+        est, inliers = _register(source, target, assoc, weights, cfg)
     except DegenerateGeometryError as exc:
         timings["registration"] = time.perf_counter() - t2
         timings["total"] = sum(timings.values())
@@ -169,12 +176,30 @@ def match_with_distances(
         problems.append(f"degenerate geometry (kappa={est.kappa:.3g} > {cfg.kappa_max:.3g})")
     common["info"].update(
         kappa_rotation=est.kappa_rotation, kappa_translation=est.kappa_translation,
-        rms_offset=est.rms_offset,
+        rms_offset=est.rms_offset, registration_inliers=inliers,
     )
     return MatchResult(
         est.T_target_source, kappa=est.kappa, degenerate=est.degenerate, valid=not problems,
         message="; ".join(problems) or "ok", timings=timings, **common,
     )
+
+
+def _register(source, target, assoc, weights, cfg: GraffMatchConfig):
+    """Closed-form registration, then one residual gate and re-registration on the survivors."""
+    w = weights if cfg.weighted_registration else None
+    est = register_landmarks(source, target, assoc, w, cfg.kappa_max)
+    inliers = np.ones(len(assoc), dtype=bool)
+    if cfg.reject_residual_m is not None and len(assoc) > cfg.min_associations:
+        keep = (est.offset_residuals <= cfg.reject_residual_m) & (
+            est.angle_residuals_deg <= cfg.reject_residual_deg
+        )
+        if cfg.min_associations <= keep.sum() < len(assoc):
+            est2 = register_landmarks(
+                source, target, assoc[keep], None if w is None else w[keep], cfg.kappa_max
+            )
+            if not est2.degenerate or est.degenerate:
+                est, inliers = est2, keep
+    return est, inliers
 
 
 class GraffMatcher:

@@ -33,8 +33,11 @@ class LandmarkScenePair:
         return len(self.true_matches) / max(m, 1)
 
 
-def street_world(n_poles: int, n_planes: int, rng: np.random.Generator, length: float = 120.0) -> LandmarkSet:
-    """Poles along both sidewalks, facades/walls along and across the street, ground patches."""
+def street_world(n_poles: int, n_planes: int, rng: np.random.Generator, length: float = 80.0) -> LandmarkSet:
+    """Poles along both sidewalks, facades/walls along and across the street, one ground plane.
+
+    The ground anchor lies near the sensors (a LiDAR ground centroid does), so 1 degree of
+    normal noise does not tilt the only height reference by metres at the sensors."""
     half = length / 2
     # Poles: near-vertical, on sidewalks at y = +-(6..9) m, heights 3-8 m.
     side = rng.choice([-1.0, 1.0], n_poles)
@@ -45,13 +48,13 @@ def street_world(n_poles: int, n_planes: int, rng: np.random.Generator, length: 
     az = rng.uniform(0, 2 * np.pi, n_poles)
     pdir = np.stack([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)], 1)
     panchor = np.stack([px, py, h / 2], 1)
-    # Planes: 1 ground, ~70% facades parallel to the street, ~30% cross walls / oblique walls.
-    n_ground = max(1, n_planes // 10)
+    # Planes: 1 ground, ~60% facades parallel to the street, the rest cross / oblique walls.
+    n_ground = 1 if n_planes else 0  # one merged ground plane, as the front end produces
     n_fac = round(0.6 * (n_planes - n_ground))
     n_other = n_planes - n_ground - n_fac
     fx = rng.uniform(-half, half, n_fac)
     fside = rng.choice([-1.0, 1.0], n_fac)
-    fy = fside * rng.uniform(10.0, 22.0, n_fac)
+    fy = fside * rng.uniform(8.0, 30.0, n_fac)
     fz = rng.uniform(2.0, 9.0, n_fac)
     fyaw = np.radians(rng.normal(0, 2.0, n_fac))
     fn = np.stack([-np.sin(fyaw) * fside, np.cos(fyaw) * fside, np.zeros(n_fac)], 1)
@@ -60,10 +63,10 @@ def street_world(n_poles: int, n_planes: int, rng: np.random.Generator, length: 
     oz = rng.uniform(1.0, 8.0, n_other)
     oyaw = rng.uniform(0, np.pi, n_other)
     on = np.stack([np.cos(oyaw), np.sin(oyaw), np.zeros(n_other)], 1)
-    gx = rng.uniform(-half, half, n_ground)
-    gy = rng.uniform(-8, 8, n_ground)
+    gx = rng.uniform(0.0, 14.0, n_ground)
+    gy = rng.uniform(-3, 3, n_ground)
     gz = rng.normal(0, 0.3, n_ground)
-    gslope = np.radians(rng.uniform(0, 4, n_ground))
+    gslope = np.radians(rng.uniform(0, 2, n_ground))
     gn = np.stack([np.sin(gslope), np.zeros(n_ground), np.cos(gslope)], 1)
     types = np.concatenate([np.full(n_poles, 1), np.full(n_planes, 2)])
     dirs = np.concatenate([pdir, fn, on, gn])
@@ -117,6 +120,10 @@ def make_scene_pair(
     keep_sets = []
     for _ in range(2):
         keep = np.sort(rng.choice(n, size=round(overlap * n), replace=False))
+        ground = n - 1  # the ground plane is last and always seen
+        if ground not in keep:
+            keep[0] = ground
+            keep = np.sort(keep)
         extra = street_world(
             round(n_outliers * n_poles / max(n, 1)),
             n_outliers - round(n_outliers * n_poles / max(n, 1)),

@@ -122,7 +122,9 @@ class Landmark:
     @property
     def direction(self) -> Array:
         """Line direction or plane normal (unit)."""
-        return _directions(self.basis[None], np.array([int(self.kind)]))[0]
+        padded = np.zeros((1, 3, 2))
+        padded[0, :, : int(self.kind)] = self.basis
+        return _directions(padded, np.array([int(self.kind)]))[0]
 
     def cp_vector(self) -> Array:
         return LandmarkSet.from_landmarks([self]).cp_vectors()[0]

@@ -1,0 +1,65 @@
+"""Sparse consistency graph: equals a brute-force construction; one-to-one; no dense m x m."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from graffmatch.association.consistency_graph import build_consistency_graph
+from graffmatch.association.putative import all_to_all, count_all_to_all
+from graffmatch.datasets.landmark_scene import make_scene_pair
+from graffmatch.errors import InvalidInputError
+from graffmatch.geometry.distance import pairwise_distances
+
+
+def _brute(D_i, D_j, assoc, eps, sigma):
+    m = len(assoc)
+    W = np.zeros((m, m))
+    for u in range(m):
+        for v in range(m):
+            a, b = assoc[u]
+            a2, b2 = assoc[v]
+            if u == v or a == a2 or b == b2:
+                continue
+            c = abs(D_i[a, a2] - D_j[b, b2])
+            if c < eps:
+                W[u, v] = np.exp(-c * c / (2 * sigma * sigma))
+    return W
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_all_to_all_graph_equals_bruteforce(seed):
+    sc = make_scene_pair(5, 8, seed=seed)
+    Di, Dj = pairwise_distances(sc.source), pairwise_distances(sc.target)
+    g = build_consistency_graph(Di, Dj, types_i=sc.source.types, types_j=sc.target.types)
+    assert np.array_equal(g.associations, all_to_all(sc.source.types, sc.target.types))
+    assert g.m == count_all_to_all(sc.source.types, sc.target.types)
+    W = _brute(Di, Dj, g.associations, 0.2, 0.05)
+    assert np.allclose(g.weights.toarray(), W, atol=1e-12)
+    # explicit list path gives the same graph
+    g2 = build_consistency_graph(Di, Dj, associations=g.associations)
+    assert np.allclose(g2.weights.toarray(), W, atol=1e-12)
+
+
+def test_one_to_one_and_true_matches_are_connected():
+    sc = make_scene_pair(8, 16, seed=4, anchor_noise=0.0, angle_noise_deg=0.0)
+    g = build_consistency_graph(pairwise_distances(sc.source), pairwise_distances(sc.target),
+                                types_i=sc.source.types, types_j=sc.target.types)
+    W = g.weights.tocoo()
+    A = g.associations
+    assert not np.any(A[W.row, 0] == A[W.col, 0]) and not np.any(A[W.row, 1] == A[W.col, 1])
+    idx = {tuple(a): i for i, a in enumerate(A.tolist())}
+    true = [idx[tuple(t)] for t in sc.true_matches.tolist()]
+    sub = g.weights[true][:, true].toarray()
+    k = len(true)
+    assert np.count_nonzero(sub) == k * (k - 1)  # the true associations form a clique
+    assert np.allclose(sub[~np.eye(k, dtype=bool)], 1.0)  # noiseless: c = 0, w = 1
+
+
+def test_bad_inputs():
+    with pytest.raises(InvalidInputError):
+        build_consistency_graph(np.zeros((2, 3)), np.zeros((2, 2)), types_i=[1, 1], types_j=[1, 1])
+    with pytest.raises(InvalidInputError):
+        build_consistency_graph(np.full((2, 2), np.nan), np.zeros((2, 2)), types_i=[1, 1], types_j=[1, 1])
+    with pytest.raises(InvalidInputError):
+        build_consistency_graph(np.zeros((2, 2)), np.zeros((2, 2)), associations=[[0, 5]])

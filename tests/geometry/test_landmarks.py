@@ -1,0 +1,112 @@
+"""LandmarkSet construction, representations, transformation law, persistence and validation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.geometry.landmarks import Landmark, LandmarkSet, LandmarkType, fit_landmark
+from graffmatch.geometry.transforms import invert, make_transform, random_transform, rot_z
+
+
+def _random_set(rng, n=20):
+    types = rng.integers(0, 3, n)
+    return LandmarkSet.from_arrays(types, rng.normal(size=(n, 3)), rng.uniform(-30, 30, (n, 3)),
+                                   {"support": rng.integers(10, 1000, n).astype(float)})
+
+
+def test_constructors_and_representations():
+    line = Landmark.line([1, 2, 3], [0, 0, 2])
+    assert np.allclose(line.direction, [0, 0, 1])
+    assert np.allclose(line.vector_form(), [0, 0, 1, 1, 2, 3])
+    plane = Landmark.plane_from_hesse([0, 0, 1], 2.0, anchor=[5, 5, 7])
+    assert np.allclose(plane.anchor, [5, 5, 2])  # anchor projected onto the plane
+    assert np.allclose(plane.hesse(), [0, 0, 1, 2])
+    ls = LandmarkSet.from_landmarks([line, plane, Landmark.point([1, 1, 1])])
+    cp = ls.cp_vectors()
+    assert np.allclose(cp[0], [1, 2, 0])  # closest point of the vertical line to the origin
+    assert np.allclose(cp[1], [0, 0, 2])
+    assert np.allclose(cp[2], [1, 1, 1])
+    assert ls.counts() == {"points": 1, "lines": 1, "planes": 1}
+
+
+def test_transformation_law_matches_hesse_inverse_transpose(rng):
+    ls = _random_set(rng)
+    T = random_transform(rng, 20)
+    moved = ls.transform(T)
+    pi = np.concatenate([ls.hesse()[:, :3], -ls.hesse()[:, 3:]], axis=1)  # n.x - d = 0
+    pi_moved = (np.linalg.inv(T).T @ pi.T).T
+    got = np.concatenate([moved.hesse()[:, :3], -moved.hesse()[:, 3:]], axis=1)
+    assert np.allclose(pi_moved, got, atol=1e-9)
+    # lines: [RA; Rb + t]
+    vf, vf2 = ls.vector_forms(), moved.vector_forms()
+    assert np.allclose(vf2[:, :3], vf[:, :3] @ T[:3, :3].T)
+    assert np.allclose(vf2[:, 3:], vf[:, 3:] @ T[:3, :3].T + T[:3, 3])
+    assert moved.transform(invert(T)).approx_equal(ls, atol=1e-9)
+
+
+def test_slicing_concatenation_and_points(rng):
+    ls = _random_set(rng, 6)
+    pts = rng.normal(size=(30, 3)).astype(np.float32)
+    ls = LandmarkSet(ls.types, ls.bases, ls.anchors, ls.attributes, pts, [0, 5, 5, 12, 20, 26, 30])
+    sub = ls[[1, 3]]
+    assert len(sub) == 2 and np.allclose(sub.support_points(1), pts[12:20])
+    both = LandmarkSet.concatenate([ls, sub])
+    assert len(both) == 8 and np.allclose(both.support_points(7), pts[12:20])
+
+
+def test_save_load_roundtrip_is_compact(tmp_path, rng):
+    ls = _random_set(rng, 40)
+    path = ls.save(tmp_path / "lm.npz")
+    back = LandmarkSet.load(path)
+    assert back.approx_equal(ls, atol=1e-12)
+    assert np.allclose(back.bases, ls.bases)
+    assert np.allclose(back.attributes["support"], ls.attributes["support"])
+    assert path.stat().st_size < 4096  # a few kB for 40 landmarks
+
+
+def test_malformed_file(tmp_path):
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(MalformedFileError, match="bad.npz"):
+        LandmarkSet.load(bad)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(types=[1], bases=np.zeros((1, 3, 2)), anchors=np.zeros((1, 3))), "orthonormal"),
+        (dict(types=[2], bases=np.tile(np.eye(3)[:, :2], (1, 1, 1)), anchors=[[np.nan, 0, 0]]), "NaN"),
+        (dict(types=[1], bases=np.zeros((1, 3, 2)), anchors=np.zeros((2, 3))), "shape"),
+        (dict(types=[5], bases=np.zeros((1, 3, 2)), anchors=np.zeros((1, 3))), "types"),
+    ],
+)
+def test_validation_errors(kwargs, match):
+    with pytest.raises(InvalidInputError, match=match):
+        LandmarkSet(**kwargs)
+
+
+def test_empty_set_where_not_allowed():
+    with pytest.raises(InvalidInputError, match="empty"):
+        LandmarkSet.empty().require_nonempty()
+
+
+def test_pca_fit_returns_residuals(rng):
+    R = rot_z(0.3)
+    pts = rng.uniform(-5, 5, (500, 3)) * [1, 1, 0]
+    pts = pts + rng.normal(0, 0.01, pts.shape)
+    pts = pts @ R.T + [1, 2, 3]
+    lm, resid = fit_landmark(pts, LandmarkType.PLANE)
+    assert abs(abs(lm.direction @ (R @ [0, 0, 1])) - 1) < 1e-4
+    assert resid.shape == (500,) and resid.std() < 0.02
+    assert np.allclose(lm.anchor, pts.mean(0))
+    with pytest.raises(InvalidInputError):
+        fit_landmark(np.ones((10, 3)), LandmarkType.LINE)  # degenerate
+
+
+def test_transform_rejects_non_rigid(rng):
+    ls = _random_set(rng, 3)
+    T = make_transform(np.diag([1, 1, 2.0]), [0, 0, 0])
+    with pytest.raises(InvalidInputError):
+        ls.transform(T)
