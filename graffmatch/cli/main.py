@@ -501,6 +501,7 @@ def register(
             title=f"GraffMatch: {src.path.name} → {tgt.path.name}",
             info=_view_info(data),
             max_points=settings.view.max_points,
+            initial=settings.view.initial,
         )
     _print_register(data, src, tgt, result_path, pose_written, view_written)
     if not valid:
@@ -719,6 +720,7 @@ def view(
         f"{Path(data['inputs']['target']['absolute']).name}",
         info=_view_info(data),
         max_points=STATE.settings.view.max_points,
+        initial=STATE.settings.view.initial,
     )
     info(f"view: {written}")
 

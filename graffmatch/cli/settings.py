@@ -85,6 +85,11 @@ class ViewConfig(BaseModel):
     max_points: int = Field(
         25_000, ge=0, description="Points drawn per scan at most (uniform, seeded subset)."
     )
+    initial: Literal["after", "raw", "side"] = Field(
+        "after",
+        description="State shown when the page opens: 'after' alignment, 'raw' frames (before) "
+        "or 'side' by side (before, with the correspondences readable).",
+    )
 
 
 class InputConfig(BaseModel):

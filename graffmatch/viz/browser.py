@@ -101,7 +101,11 @@ def render_html(
     timeout: float = 90.0,
     chromium: str | None = None,
 ) -> RenderResult:
-    """Open ``html`` headless and offline; return the rendered DOM, console messages and PNG."""
+    """Open ``html`` headless and offline; return the rendered DOM, console messages and PNG.
+
+    The PNG is the page as laid out: chromium's new headless mode uses a viewport about 140 px
+    shorter than ``height``, and the blank rows below it are cropped.
+    """
     exe = chromium or find_chromium()
     if exe is None:
         raise BrowserError("chromium not found (Debian: apt-get install chromium)")
@@ -132,4 +136,24 @@ def render_html(
         console = [m.group("msg") for m in _CONSOLE.finditer(proc.stderr)]
         if shot is not None and not shot.is_file():
             raise BrowserError(f"chromium wrote no screenshot for {html}")
-    return RenderResult(proc.stdout, sorted(set(console)), shot)
+    result = RenderResult(proc.stdout, sorted(set(console)), shot)
+    if shot is not None:
+        _crop_to_viewport(shot, result.body_attributes.get("data-graffmatch-viewport"))
+    return result
+
+
+def _crop_to_viewport(png: Path, viewport: str | None) -> None:
+    """New headless chromium lays the page out in a viewport shorter than the screenshot
+    (room for an invisible toolbar); the page measured its size at load, so the rows below the
+    viewport are blank. Crop them away so that the PNG is the page as laid out."""
+    if not viewport or "x" not in viewport:
+        return
+    import matplotlib.image as mpimg
+
+    try:
+        w, h = (int(v) for v in viewport.split("x"))
+    except ValueError:
+        return
+    img = mpimg.imread(str(png))
+    if 0 < h < img.shape[0] and 0 < w <= img.shape[1]:
+        mpimg.imsave(str(png), img[:h, :w])

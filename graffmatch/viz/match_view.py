@@ -34,6 +34,7 @@ RENDERED_MARKER_JS = """
   var ok = !!(gd && gd._fullLayout && gd.data && gd.data.length && canvas);
   document.body.setAttribute('data-graffmatch-rendered', ok ? '1' : '0');
   document.body.setAttribute('data-graffmatch-traces', gd && gd.data ? gd.data.length : 0);
+  document.body.setAttribute('data-graffmatch-viewport', window.innerWidth + 'x' + window.innerHeight);
   window.addEventListener('error', function (e) {
     document.body.setAttribute('data-graffmatch-error', String(e.message));
   });
