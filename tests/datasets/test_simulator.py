@@ -281,7 +281,7 @@ def test_same_seed_gives_identical_bytes(dataset, tmp_path):
     stamp = (out / "velodyne/000000.bin").stat().st_mtime_ns
     simulate_dataset(out, style="open-road", seed=5, n_scans=8, reuse=True)
     assert (out / "velodyne/000000.bin").stat().st_mtime_ns == stamp
-    other = simulate_dataset(tmp_path / "other", style="open-road", seed=6, n_scans=8)
+    other = simulate_dataset(tmp_path / "other", style="open-road", seed=6, n_scans=1)
     assert (out / "velodyne/000000.bin").read_bytes() != (
         other / "velodyne/000000.bin"
     ).read_bytes()
@@ -308,10 +308,10 @@ def test_calib_matches_real_kitti00(shared_data):
 
 
 # ---- trajectories, scan pair, suites, errors --------------------------------------------------
-@pytest.mark.parametrize("style,seed", [("downtown", 1), ("suburban", 1), ("open-road", 1)])
-def test_routes_have_revisits_of_all_rotations(worlds, style, seed):
-    w = build_world(style, seed)
-    traj = plan_route(w, 300, seed)
+@pytest.mark.parametrize("style", ["downtown", "suburban", "open-road"])
+def test_routes_have_revisits_of_all_rotations(worlds, style):
+    w = worlds[style]
+    traj = plan_route(w, 300, 1)
     places, pairs, dyaw = revisit_pairs(traj.T_world_lidar)
     assert len(places) == pytest.approx(150, abs=3)
     p = traj.positions
@@ -324,12 +324,18 @@ def test_routes_have_revisits_of_all_rotations(worlds, style, seed):
         and np.sum((dyaw > 60) & (dyaw < 120)) >= 5
     )
     assert dist.max() > 12.0
-    # revisits in other lanes: same-direction pairs whose lateral offset exceeds a lane width
-    same = pairs[dyaw < 20]
-    head = traj.T_world_lidar[same[:, 0], :3, 0]
-    off = p[same[:, 1]] - p[same[:, 0]]
-    lateral = np.linalg.norm(off - np.einsum("ij,ij->i", off, head)[:, None] * head, axis=1)
-    assert lateral.max() > 0.8 * w.config.lane_width
+
+    # revisits in other lanes: opposite-direction passes use the other side of the street, and
+    # on multi-lane streets same-direction passes also come back in another lane
+    def lateral(sel):
+        pr = pairs[sel]
+        head = traj.T_world_lidar[pr[:, 0], :3, 0]
+        off = p[pr[:, 1]] - p[pr[:, 0]]
+        return np.linalg.norm(off - np.einsum("ij,ij->i", off, head)[:, None] * head, axis=1)
+
+    assert lateral(dyaw > 170).max() > 0.8 * w.config.lane_width
+    if w.config.lanes_per_direction > 1:
+        assert lateral(dyaw < 10).max() > 0.8 * w.config.lane_width
 
 
 def test_scan_pair_for_the_demo():

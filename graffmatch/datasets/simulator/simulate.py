@@ -59,7 +59,7 @@ def _clear_scans(out: Path) -> None:
         if d.is_dir():
             for p in d.iterdir():
                 if pat.match(p.name):
-                    p.unlink()
+                    p.unlink(missing_ok=True)
 
 
 def simulate_dataset(

@@ -207,18 +207,14 @@ _QUAD_B = np.array([0, 3, 2])
 _BOX_FACE = {"-x": 0, "+x": 1, "-y": 2, "+y": 3, "-z": 4, "+z": 5}
 
 
+_BOX_BITS = np.array([[(i >> k) & 1 for k in range(3)] for i in range(8)])
+_BOX_AXES = np.broadcast_to(np.arange(3), (8, 3))
+
+
 def _box(lo: NDArray, hi: NDArray) -> tuple[NDArray, NDArray]:
     """Axis-aligned box; triangles 2f, 2f+1 belong to face f in the order -x +x -y +y -z +z."""
-    i = np.arange(8)
-    V = np.stack(
-        [
-            np.where(i & 1, hi[0], lo[0]),
-            np.where(i & 2, hi[1], lo[1]),
-            np.where(i & 4, hi[2], lo[2]),
-        ],
-        axis=1,
-    )
-    return V.astype(float), _BOX_TRIS
+    LH = np.array([lo, hi], dtype=float)
+    return LH[_BOX_BITS, _BOX_AXES], _BOX_TRIS
 
 
 def _cylinder(base: NDArray, radius: float, height: float, n_seg: int = 12):
@@ -294,9 +290,12 @@ class _MeshBuilder:
         self.V.append(np.asarray(V, float))
         self.F.append(np.asarray(F, np.int64) + self.nv)
         self.nv += len(V)
-        self.cls.append(np.broadcast_to(np.asarray(cls, np.uint16), (m,)).copy())
-        self.inst.append(np.broadcast_to(np.asarray(inst, np.uint32), (m,)).copy())
-        self.lm.append(np.broadcast_to(np.asarray(lm, np.int32), (m,)).copy())
+        for store, v, dt in (
+            (self.cls, cls, np.uint16),
+            (self.inst, inst, np.uint32),
+            (self.lm, lm, np.int32),
+        ):
+            store.append(np.full(m, v, dt) if np.isscalar(v) else np.asarray(v, dt).reshape(m))
 
     def add_plane(self, normal, anchor, box, class_id: int, category: str, instance: int) -> int:
         n = np.asarray(normal, float)
@@ -432,11 +431,9 @@ class World:
 
 
 def _pwl(x, knots: NDArray, values: NDArray) -> NDArray:
-    """Piecewise-linear function with linear extrapolation beyond the end knots."""
-    x = np.asarray(x, float)
-    s = _pwl_slope(x, knots, values)
-    i = np.clip(np.searchsorted(knots, x, side="right") - 1, 0, len(knots) - 2)
-    return values[i] + s * (x - knots[i])
+    """Piecewise-linear function; the end knots lie 200 m beyond the world's terrain, so
+    interpolation (np.interp, fast for scalars too) covers every place that exists."""
+    return np.interp(x, knots, values)
 
 
 def _pwl_slope(x, knots: NDArray, values: NDArray) -> NDArray:
