@@ -73,8 +73,15 @@ def reset_state(verbosity: int = 0, config_path: Path | None = None) -> None:
     STATE._settings = None
     level = {-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO}.get(verbosity, logging.DEBUG)
     logging.getLogger("graffmatch").setLevel(level)
+    warnings.showwarning = _show_warning
     if verbosity < 0:
         warnings.filterwarnings("ignore", category=RuntimeWarning, module="graffmatch")
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Library warnings as one yellow line (where they came from only with -v)."""
+    where = f" ({filename}:{lineno})" if STATE.verbosity > 0 else ""
+    err.print(f"[yellow]warning[/yellow]: {message}{where}", markup=True, highlight=False)
 
 
 def info(message: str) -> None:

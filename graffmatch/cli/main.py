@@ -529,10 +529,16 @@ def _view_info(data: dict) -> dict[str, str]:
 
 
 def _refine_icp(src, tgt, assoc: np.ndarray, T_init: np.ndarray, result) -> dict:
-    """ICP on the support points of the matched landmarks only (the paper's GraffMatch+ICP)."""
-    from graffmatch.registration.icp import refine_icp
+    """ICP on the support points of the matched landmarks only (the paper's GraffMatch+ICP).
 
-    if len(assoc) == 0:
+    Like :func:`graffmatch.register_scans`, it uses the associations the registration kept
+    (``result.info['registration_inliers']``) when the matcher reports them.
+    """
+    from graffmatch.registration.icp import matched_support_points, refine_icp
+
+    keep = (getattr(result, "info", None) or {}).get("registration_inliers")
+    used = assoc if keep is None else assoc[np.asarray(keep)]
+    if len(used) == 0:
         raise InvalidInputError("--refine icp: the matcher selected no associations to refine")
     for name, ls in (("source", src), ("target", tgt)):
         if ls.points is None:
@@ -540,17 +546,18 @@ def _refine_icp(src, tgt, assoc: np.ndarray, T_init: np.ndarray, result) -> dict
                 f"--refine icp needs the {name} landmarks' support points: pass the scan, or "
                 "extract with --with-points"
             )
-    ps = src[np.unique(assoc[:, 0])].points
-    pt = tgt[np.unique(assoc[:, 1])].points
-    if ps is None or pt is None or len(ps) < 3 or len(pt) < 3:
+    ps, pt = matched_support_points(src, tgt, used)
+    if len(ps) < 3 or len(pt) < 3:
         raise InvalidInputError("--refine icp: the matched landmarks carry too few support points")
     icp = STATE.settings.icp
     T, fitness, rmse = refine_icp(
-        np.asarray(ps, float),
-        np.asarray(pt, float),
+        ps,
+        pt,
         T_init,
         max_correspondence_distance=icp.max_correspondence_distance,
         max_iterations=icp.max_iterations,
+        point_to_plane=icp.point_to_plane,
+        normal_radius=icp.normal_radius,
     )
     return {
         "method": "icp",
@@ -558,6 +565,7 @@ def _refine_icp(src, tgt, assoc: np.ndarray, T_init: np.ndarray, result) -> dict
         "T_init": T_init,
         "fitness": float(fitness),
         "inlier_rmse": float(rmse),
+        "n_associations": len(used),
         "n_source_points": len(ps),
         "n_target_points": len(pt),
     }

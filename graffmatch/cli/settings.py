@@ -54,9 +54,18 @@ class IcpConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     max_correspondence_distance: float = Field(
-        1.0, gt=0, description="Largest point-pair distance ICP accepts as a match [m]."
+        0.5,
+        gt=0,
+        description="Largest point-pair distance ICP accepts as a match [m] (as "
+        "graffmatch.register_scans).",
     )
     max_iterations: int = Field(30, ge=1, description="ICP iterations at most.")
+    point_to_plane: bool = Field(
+        True, description="Point-to-plane ICP (normals on the target); else point-to-point."
+    )
+    normal_radius: float = Field(
+        1.0, gt=0, description="Radius of the target normal estimation (point-to-plane) [m]."
+    )
 
 
 class GroundTruthConfig(BaseModel):
