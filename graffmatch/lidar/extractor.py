@@ -168,7 +168,8 @@ class LandmarkExtractor:
                 stacklevel=2,
             )
             return LandmarkSet.empty()
-        extent = max(float(np.ptp(P[:, j])) for j in range(3))
+        sample = P[:: max(1, P.shape[0] // 4096)]  # the extent test needs no precision
+        extent = max(float(np.ptp(sample[:, j])) for j in range(3))
         if extent < 1e-3:
             warnings.warn(
                 "the cloud spans less than 1 mm; no landmarks (wrong units?)",
@@ -208,7 +209,7 @@ class LandmarkExtractor:
         cpu["planes"] = time.process_time() - c
 
         t, c = time.perf_counter(), time.process_time()
-        parts: list[LandmarkSet] = []
+        parts: list[dict] = []
         cap = cfg.max_points_per_landmark
         if ground is not None and ground.normal is not None:
             sup = ground.plane_inliers
@@ -217,64 +218,73 @@ class LandmarkExtractor:
             q = gpts - ground.centroid
             _, _, Vt = np.linalg.svd(q[:: max(1, q.shape[0] // 20000)], full_matrices=False)
             uv = q @ Vt[:2].T
-            box = np.ptp(uv, axis=0)
-            take = np.linspace(0, sup.size - 1, min(cap, sup.size)).astype(np.int64) if cap else []
+            box = np.array([np.ptp(uv[:, 0]), np.ptp(uv[:, 1])])
+            take = np.linspace(0, sup.size - 1, min(cap, sup.size)).astype(np.int64)
             parts.append(
-                LandmarkSet.from_arrays(
-                    [LandmarkType.PLANE],
-                    ground.normal[None],
-                    ground.centroid[None],
-                    {
-                        "support": np.array([sup.size], float),
-                        "rms": np.array([ground.rms]),
-                        "box": box[None],
-                        "extent": np.array([box[0] * box[1]]),
-                        "radius": np.array([np.nan]),
-                        "is_ground": np.array([1.0]),
-                    },
-                    gpts[take],
-                    [0, len(take)],
-                )
+                {
+                    "type": LandmarkType.PLANE,
+                    "dirs": ground.normal[None],
+                    "anchors": ground.centroid[None],
+                    "support": np.array([sup.size], float),
+                    "rms": np.array([ground.rms]),
+                    "box": box[None],
+                    "extent": np.array([box[0] * box[1]]),
+                    "radius": np.array([np.nan]),
+                    "is_ground": np.array([1.0]),
+                    "points": gpts[take],
+                    "counts": np.array([take.size]),
+                }
             )
         if poles is not None and len(poles):
             idx, offs = subsample_groups(poles.labels, np.arange(len(poles)), cap)
             parts.append(
-                LandmarkSet.from_arrays(
-                    np.full(len(poles), LandmarkType.LINE, np.int8),
-                    poles.directions,
-                    poles.anchors,
-                    {
-                        "support": poles.support.astype(float),
-                        "rms": poles.rms,
-                        "extent": poles.extent,
-                        "radius": poles.radius,
-                        "box": np.full((len(poles), 2), np.nan),
-                        "is_ground": np.zeros(len(poles)),
-                    },
-                    P[idx],
-                    offs,
-                )
+                {
+                    "type": LandmarkType.LINE,
+                    "dirs": poles.directions,
+                    "anchors": poles.anchors,
+                    "support": poles.support.astype(float),
+                    "rms": poles.rms,
+                    "box": np.full((len(poles), 2), np.nan),
+                    "extent": poles.extent,
+                    "radius": poles.radius,
+                    "is_ground": np.zeros(len(poles)),
+                    "points": P[idx],
+                    "counts": np.diff(offs),
+                }
             )
         if planes is not None and len(planes):
             idx, offs = subsample_groups(planes.labels, np.arange(len(planes)), cap)
             parts.append(
-                LandmarkSet.from_arrays(
-                    np.full(len(planes), LandmarkType.PLANE, np.int8),
-                    planes.normals,
-                    planes.anchors,
-                    {
-                        "support": planes.support.astype(float),
-                        "rms": planes.rms,
-                        "extent": planes.area,
-                        "radius": np.full(len(planes), np.nan),
-                        "box": planes.box,
-                        "is_ground": np.zeros(len(planes)),
-                    },
-                    planes.points[idx],
-                    offs,
-                )
+                {
+                    "type": LandmarkType.PLANE,
+                    "dirs": planes.normals,
+                    "anchors": planes.anchors,
+                    "support": planes.support.astype(float),
+                    "rms": planes.rms,
+                    "box": planes.box,
+                    "extent": planes.area,
+                    "radius": np.full(len(planes), np.nan),
+                    "is_ground": np.zeros(len(planes)),
+                    "points": planes.points[idx],
+                    "counts": np.diff(offs),
+                }
             )
-        out = LandmarkSet.concatenate(parts) if parts else LandmarkSet.empty()
+        if parts:
+            cat = {k: np.concatenate([pt[k] for pt in parts]) for k in parts[0] if k != "type"}
+            types = np.concatenate(
+                [np.full(len(pt["anchors"]), pt["type"], np.int8) for pt in parts]
+            )
+            attrs = {k: cat[k] for k in ("support", "rms", "box", "extent", "radius", "is_ground")}
+            out = LandmarkSet.from_arrays(
+                types,
+                cat["dirs"],
+                cat["anchors"],
+                attrs,
+                cat["points"],
+                np.concatenate([[0], np.cumsum(cat["counts"])]),
+            )
+        else:
+            out = LandmarkSet.empty()
         if np.any(offset):
             T = np.eye(4)
             T[:3, 3] = offset
