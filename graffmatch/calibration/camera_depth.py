@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -32,11 +33,17 @@ class BoardDetectionConfig(BaseModel):
 
     max_boards: int = Field(20, ge=1, description="Stop after this many boards.")
     subpix_window: int = Field(5, ge=1, description="cornerSubPix half window [px].")
-    detect_max_side: int = Field(
-        2000,
-        ge=200,
-        description="Search corners on an image downscaled to about this size "
-        "(integer factor) [px], then refine them at full resolution.",
+    roi_search: bool = Field(
+        True,
+        description="First look for boards inside bright blobs (white board margins), one crop "
+        "at a time: faster, and finds boards the whole-image search misses when several "
+        "boards are in view. A whole-image search on the rest follows either way.",
+    )
+    min_roi_side: int = Field(24, ge=8, description="Smallest blob considered a board [px].")
+    full_image_pass: Literal["auto", "always"] = Field(
+        "auto",
+        description="Whole-image search after the blob pass: 'always', or 'auto' = only when "
+        "no board was found or bright blobs remain unexplained (boards without a white margin).",
     )
     use_sector_based: bool = Field(
         False,
@@ -98,31 +105,46 @@ def _check_K(K: ArrayLike, name: str) -> Array:
 
 
 def _find_one(
-    gray: NDArray[np.uint8], size: tuple[int, int], cfg: BoardDetectionConfig
+    gray: NDArray[np.uint8], size: tuple[int, int], cfg: BoardDetectionConfig, fast_check: bool
 ) -> Array | None:
-    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
-    # Find on a reduced image (the quad search cost grows with pixels, and the final "no more
-    # boards" call is the slowest), then refine the corners at full resolution.
-    scale = max(1, round(max(gray.shape) / cfg.detect_max_side))
-    small = (
-        gray
-        if scale == 1
-        else cv2.resize(
-            gray, (gray.shape[1] // scale, gray.shape[0] // scale), interpolation=cv2.INTER_AREA
-        )
-    )
-    ok, corners = cv2.findChessboardCorners(small, size, flags=flags)
+    # FAST_CHECK saves time on a whole image with no board left, but rejects tight crops.
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    if fast_check:
+        flags |= cv2.CALIB_CB_FAST_CHECK
+    ok, corners = cv2.findChessboardCorners(gray, size, flags=flags)
     if ok:
-        corners = (corners + 0.5) * scale - 0.5
         w = cfg.subpix_window
         crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
-        corners = cv2.cornerSubPix(gray, corners.astype(np.float32), (w, w), (-1, -1), crit)
+        corners = cv2.cornerSubPix(gray, corners, (w, w), (-1, -1), crit)
         return corners.reshape(-1, 2).astype(np.float64)
     if cfg.use_sector_based:
         ok, corners = cv2.findChessboardCornersSB(gray, size, flags=cv2.CALIB_CB_ACCURACY)
         if ok:
             return corners.reshape(-1, 2).astype(np.float64)
     return None
+
+
+def _bright_threshold(gray: NDArray[np.uint8]) -> float:
+    """Otsu's threshold of the whole image: separates white board margins from the scene.
+    Computed once; Otsu on a crop of mostly background would split the background itself."""
+    t, _ = cv2.threshold(gray, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    return float(t)
+
+
+def _candidate_rois(
+    gray: NDArray[np.uint8], threshold: float, min_side: int
+) -> list[tuple[int, int, int, int]]:
+    """Bounding boxes (x0, y0, x1, y1) of bright blobs: a board's white margin is one connected
+    outer contour around its pattern, so each board shows up as one blob (biggest first)."""
+    _, bright = cv2.threshold(gray, threshold, 255, cv2.THRESH_BINARY)
+    contours, _ = cv2.findContours(bright, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    boxes = []
+    for c in contours:  # blobs, not pixels
+        x, y, w, h = cv2.boundingRect(c)
+        if w >= min_side and h >= min_side:
+            pad = int(0.15 * max(w, h)) + 4
+            boxes.append((max(0, x - pad), max(0, y - pad), x + w + pad, y + h + pad))
+    return sorted(boxes, key=lambda b: -(b[2] - b[0]) * (b[3] - b[1]))
 
 
 def _pnp(obj: Array, corners: Array, K: Array) -> tuple[Array, float] | None:
@@ -165,14 +187,13 @@ def detect_board_planes(
     fill = int(np.median(gray))
     # The painted-out region: pattern plus mask_margin squares, in the board frame.
     w, h = board.pattern_size
-    m = cfg.mask_margin * board.square
+    m = max(cfg.mask_margin * board.square, board.margin + 0.3 * board.square)
     quad = np.array([[-w / 2 - m, -h / 2 - m, 0], [w / 2 + m, -h / 2 - m, 0],
                      [w / 2 + m, h / 2 + m, 0], [-w / 2 - m, h / 2 + m, 0]])  # fmt: skip
     found: list[BoardDetection] = []
-    for _ in range(cfg.max_boards):
-        corners = _find_one(gray, (board.cols, board.rows), cfg)
-        if corners is None:
-            break
+    size = (board.cols, board.rows)
+
+    def accept(corners: Array) -> None:
         pose = _pnp(obj, corners, K)
         hull = cv2.convexHull(corners.astype(np.float32)).reshape(-1, 2)
         if pose is not None:
@@ -184,6 +205,32 @@ def detect_board_planes(
             if rms <= cfg.max_reprojection_px:
                 found.append(BoardDetection(corners, T, rms))
         cv2.fillConvexPoly(gray, np.round(hull).astype(np.int32), fill)
+
+    attempts = 0  # every success paints a board out, so this bounds the work
+    thr = _bright_threshold(gray)
+    rois = _candidate_rois(gray, thr, cfg.min_roi_side) if cfg.roi_search else []
+    for x0, y0, x1, y1 in rois:
+        while attempts < 2 * cfg.max_boards and len(found) < cfg.max_boards:
+            attempts += 1
+            crop = np.ascontiguousarray(gray[y0:y1, x0:x1])
+            corners = _find_one(crop, size, cfg, False)
+            if corners is None:
+                break
+            accept(corners + np.array([x0, y0], float))
+            # Another board in this crop only if a bright blob is left (a failed search on
+            # a painted-out crop is the slow case of the detector).
+            crop = np.ascontiguousarray(gray[y0:y1, x0:x1])
+            if not _candidate_rois(crop, thr, cfg.min_roi_side):
+                break
+    # The whole image: always, or ("auto") unless the blobs explained every board found.
+    whole = cfg.full_image_pass == "always" or not found
+    whole = whole or bool(_candidate_rois(gray, thr, cfg.min_roi_side))
+    while whole and attempts < 3 * cfg.max_boards and len(found) < cfg.max_boards:
+        attempts += 1
+        corners = _find_one(gray, size, cfg, True)
+        if corners is None:
+            break
+        accept(corners)
     return found
 
 
