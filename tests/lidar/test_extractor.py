@@ -63,7 +63,7 @@ def test_poles_recovered(extracted, scene, mode: int) -> None:
         assert dist < POS_TOL_M
         assert ang < ANGLE_TOL_DEG
     lines = ls.of_type(LandmarkType.LINE)
-    np.testing.assert_allclose(lines.attributes["radius"], 0.12 * 2 / np.pi * np.pi / 2, atol=0.03)
+    np.testing.assert_allclose(lines.attributes["radius"], 0.12, atol=0.03)
     assert np.all(lines.attributes["extent"] > 3.0)
 
 
@@ -210,3 +210,38 @@ def test_config_rejects_unknown_and_bad_values() -> None:
         LandmarkExtractorConfig(poles={"not_a_field": 1})
     a, b = LandmarkExtractorConfig(), LandmarkExtractorConfig(poles={"min_length": 2.0})
     assert a.config_hash() != b.config_hash()
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    tilt=st.floats(0.0, 10.0),
+    azimuth=st.floats(0.0, 360.0),
+    radius=st.floats(0.05, 0.3),
+    x=st.floats(4.0, 30.0),
+    y=st.floats(-30.0, 30.0),
+    seed=st.integers(0, 2**16),
+)
+def test_semantic_pole_fit_property(tilt, azimuth, radius, x, y, seed) -> None:
+    """Any labelled, tilted (<= 10 deg) pole is recovered: axis within 1 deg, anchor on the
+    axis within 5 cm, radius within 30%."""
+    rng = np.random.default_rng(seed)
+    t, a = np.radians(tilt), np.radians(azimuth)
+    d = np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)])
+    u = np.cross(d, [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(d, u)
+    n = 600
+    s = rng.uniform(0, 5.0, n)
+    ang = rng.uniform(0, 2 * np.pi, n)
+    base = np.array([x, y, -1.7])
+    pts = base + s[:, None] * d + radius * (np.cos(ang)[:, None] * u + np.sin(ang)[:, None] * v)
+    pts += rng.normal(scale=0.005, size=pts.shape)
+    cfg = LandmarkExtractorConfig(
+        poles=PoleConfig(mode="semantic"), planes={"enabled": False}, ground={"enabled": False}
+    )
+    ls = LandmarkExtractor(cfg).extract(pts, np.full(n, 80, np.uint32))
+    assert ls.counts()["lines"] == 1
+    q = ls.anchors[0] - base
+    assert np.linalg.norm(q - (q @ d) * d) < POS_TOL_M
+    assert _angle_deg(ls.directions[0], d) < ANGLE_TOL_DEG
+    assert abs(ls.attributes["radius"][0] - radius) < 0.3 * radius + 0.01

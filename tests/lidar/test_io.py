@@ -196,3 +196,16 @@ def test_writer_rejects_bad_arrays(tmp_path: Path) -> None:
         write_points(tmp_path / "x.bin", np.zeros((3, 2)))
     with pytest.raises(InvalidInputError):
         write_label(tmp_path / "x.label", np.array([-1]))
+
+
+@pytest.mark.parametrize("name", ["o3d.pcd", "o3d_ascii.pcd", "o3d.ply", "o3d_ascii.ply"])
+def test_reads_files_written_by_open3d(tmp_path: Path, rng, name: str) -> None:
+    """Cross-check the own parsers against an independent writer (Open3D)."""
+    o3d = pytest.importorskip("open3d")
+    xyz = rng.normal(scale=5.0, size=(100, 3))
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz))
+    pc.colors = o3d.utility.Vector3dVector(rng.uniform(0, 1, size=(100, 3)))  # extra fields
+    path = tmp_path / name
+    assert o3d.io.write_point_cloud(str(path), pc, write_ascii="ascii" in name)
+    back = read_points(path)
+    np.testing.assert_allclose(back[:, :3], xyz, rtol=1e-5, atol=1e-5)
