@@ -24,6 +24,10 @@ from graffmatch.evaluation.runner import StudyConfig, atomic_write_json, run_stu
 
 #: Real data suite of the default benchmark (the simulated ones are added by name prefix).
 REAL_DEFAULT_SUITES = ("balm_courtyard",)
+#: Pairs per case of the full benchmark: an evenly spaced subset keeps the default study within
+#: an hour on a 2-core machine (about 15 methods x ~5 s of CPU per pair); pass a StudyConfig with
+#: ``max_pairs_per_case=None`` for every pair.
+FULL_MAX_PAIRS_PER_CASE = 40
 
 
 def default_suites() -> list[str]:
@@ -65,7 +69,8 @@ def run_benchmark(
         data_dir: where built suites are cached (default ``<out_dir>/data``); share it
             between benchmarks to build each suite once.
         data_root: folder of the real datasets (default ``../shared/data``).
-        config: thresholds and subset sizes of the study.
+        config: thresholds and subset sizes of the study (default: at most
+            ``FULL_MAX_PAIRS_PER_CASE`` pairs per case, or the quick subset).
         progress: rich progress bars.
     """
     from graffmatch.evaluation.suites import build_suite
@@ -86,6 +91,8 @@ def run_benchmark(
         "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "build": {},
     }
+    if config is None and not quick:
+        config = StudyConfig(max_pairs_per_case=FULL_MAX_PAIRS_PER_CASE)
     # Fail on a bad executor before spending minutes on building data.
     ex = make_executor(executor, workers=workers, address=address)
     try:

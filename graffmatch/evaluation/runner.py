@@ -53,8 +53,11 @@ RECORD_VERSION = 1
 DEFAULT_RHO_VALUES = (5.0, 10.0, 20.0, 40.0, 80.0, 160.0)
 RHO_METHOD = "GraffMatch"
 
-#: Point methods skipped by ``quick=True`` (seconds per pair each).
-QUICK_SKIP_METHODS = ("FPFH+RANSAC", "KISS-Matcher")
+#: Point methods skipped by ``quick=True`` (each takes seconds per pair on full scans).
+QUICK_SKIP_METHODS = ("FPFH+RANSAC", "KISS-Matcher", "ScanContext+ICP")
+#: Pairs per case and rho-study pairs per suite of ``quick=True``.
+QUICK_PAIRS_PER_CASE = 3
+QUICK_RHO_PAIRS = 4
 
 
 # ----------------------------------------------------------------------------------------------
@@ -664,7 +667,7 @@ def run_study(
         out_dir: results folder; existing records are kept and skipped (resume).
         executor: ``"local"`` (process pool), ``"serial"``, ``"dask"``, ``"ray"`` or an
             executor object.
-        quick: at most 4 pairs per case, the fast point methods, a 6-pair rho study.
+        quick: at most 3 pairs per case, the fast point methods, a 4-pair rho study.
         workers, address: for the executor (``address`` of a Dask/Ray cluster).
         config: thresholds and subset sizes (``StudyConfig``); ``methods`` overrides its list.
         progress: show a rich progress bar with ETA.
@@ -676,8 +679,8 @@ def run_study(
     cfg = (config or StudyConfig()).model_copy(deep=True)
     if quick:
         if cfg.max_pairs_per_case is None:
-            cfg.max_pairs_per_case = 4
-        cfg.rho_pairs_per_suite = min(cfg.rho_pairs_per_suite, 6)
+            cfg.max_pairs_per_case = QUICK_PAIRS_PER_CASE
+        cfg.rho_pairs_per_suite = min(cfg.rho_pairs_per_suite, QUICK_RHO_PAIRS)
     method_objs: dict[str, str | EvaluationMethod] = {}
     if methods is None:
         methods = cfg.methods or default_methods(quick)
