@@ -34,6 +34,26 @@ POLE = 80
 TRAFFIC_SIGN = 81
 OTHER_OBJECT = 99
 
+
+class _Palette:
+    """SemanticKITTI-like RGB colours in [0, 1] for viewing."""
+
+    def __init__(self) -> None:
+        self.table = np.full((256, 3), 0.6)
+        for cls, rgb in {
+            CAR: (0.39, 0.59, 0.96), ROAD: (1.0, 0.0, 1.0), SIDEWALK: (0.29, 0.0, 0.29),
+            BUILDING: (1.0, 0.78, 0.0), FENCE: (1.0, 0.47, 0.2), VEGETATION: (0.0, 0.69, 0.0),
+            TRUNK: (0.53, 0.24, 0.0), TERRAIN: (0.59, 0.94, 0.31), POLE: (1.0, 0.94, 0.59),
+            TRAFFIC_SIGN: (1.0, 0.0, 0.0), OTHER_OBJECT: (0.2, 0.2, 0.2),
+        }.items():  # fmt: skip
+            self.table[cls] = rgb
+
+    def get_many(self, classes: NDArray) -> NDArray:
+        return self.table[np.asarray(classes, int) & 0xFF]
+
+
+CLASS_COLOURS = _Palette()
+
 #: Landmark categories stored in the ``category`` attribute of the GT landmarks.
 CATEGORIES = {
     "ground": 0,
@@ -416,6 +436,12 @@ class World:
             o3d.utility.Vector3dVector(self.vertices.astype(float)),
             o3d.utility.Vector3iVector(self.triangles.astype(np.int32)),
         )
+        # objects do not share vertices, so a vertex takes the class colour of its triangles
+        colours = np.full((len(self.vertices), 3), 0.5)
+        for k in range(3):
+            colours[self.triangles[:, k]] = CLASS_COLOURS.get_many(self.tri_class)
+        mesh.vertex_colors = o3d.utility.Vector3dVector(colours)
+        mesh.compute_vertex_normals()
         return mesh
 
     def summary(self) -> dict:
@@ -761,22 +787,23 @@ class _Generator:
         def free(s: float, gap: float = 2.0) -> bool:
             return all(abs(s - t) > gap for t in taken)
 
+        def slots(spacing: float, lo: float, margin: float) -> NDArray:
+            """Regular slots with +-15% jitter: planted rows are regular, but not exactly."""
+            base = np.arange(s0 + rng.uniform(lo, max(lo + 0.1, spacing / 2)), s1 - margin, spacing)
+            return np.clip(base + rng.uniform(-0.15, 0.15, len(base)) * spacing, s0 + 0.5, s1 - 0.5)
+
         # street lights (arm toward the road)
-        for s in np.arange(
-            s0 + rng.uniform(2, cfg.street_light_spacing / 2), s1 - 2, cfg.street_light_spacing
-        ):
+        for s in slots(cfg.street_light_spacing, 2.0, 2.0):
             if rng.random() < cfg.street_light_prob:
                 taken.append(s)
                 self._street_light(axis, c, side, s, pole_u)
-        for s in np.arange(
-            s0 + rng.uniform(2, cfg.utility_pole_spacing / 2), s1 - 2, cfg.utility_pole_spacing
-        ):
+        for s in slots(cfg.utility_pole_spacing, 2.0, 2.0):
             if side > 0 and rng.random() < cfg.utility_pole_prob and free(s):
                 taken.append(s)
                 x, y = self._xy(axis, c, side, s, self.cw + 1.5)
                 r, hgt = self.u((0.12, 0.18)), self.u((8.0, 11.0))
                 self._pole((x, y), r, hgt, POLE, "utility_pole", arm=(axis, side, 1.2, 0.4))
-        for s in np.arange(s0 + rng.uniform(1, cfg.tree_spacing), s1 - 1.5, cfg.tree_spacing):
+        for s in slots(cfg.tree_spacing, 1.0, 1.5):
             if rng.random() < cfg.tree_prob and free(s):
                 taken.append(s)
                 u = self.hw + (sw * 0.6 if sw >= 2.0 else sw + 2.0)
