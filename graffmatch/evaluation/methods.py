@@ -12,6 +12,9 @@ Usage::
     out = method.run(PairInput(source=src_landmarks, target=tgt_landmarks))
     out.T_target_source, out.associations, out.timings["total"]
 
+Every method also has a JSON-serialisable ``params`` dict (written next to the results) and
+pickles (it can be sent to worker processes).
+
 ``kind == "landmark"`` methods use ``PairInput.source/target`` (and, for BruteForceRMSE and
 GraffMatch+ICP, their support points); ``kind == "point"`` methods use the raw scans.
 """

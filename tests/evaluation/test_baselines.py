@@ -451,3 +451,19 @@ def test_scan_context_shift_is_the_rotation_in_sectors(k: int) -> None:
 
 
 _BOXES = box_world(7, n_boxes=10, density=6.0)
+
+
+def test_every_method_exposes_json_params_and_pickles() -> None:
+    """Parameters are written next to results; methods travel to worker processes."""
+    import json
+    import pickle
+
+    for name in list_methods():
+        m = get_method(name)
+        assert m.name == name
+        params = json.loads(json.dumps(m.params))
+        assert params, name
+        assert pickle.loads(pickle.dumps(m)).params == m.params
+    assert get_method("CLIPPER-Rn", epsilon=3.0).params["epsilon"] == 3.0
+    assert get_method("GraffMatch-Naive").params["variant"] == "naive"
+    assert get_method("GraffMatch-lines").params["landmark_types"] == ["line"]
