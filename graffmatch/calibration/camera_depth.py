@@ -272,7 +272,7 @@ def depth_to_points(
 
 def _depth_extraction_default() -> PlaneExtractionConfig:
     cfg = PlaneExtractionConfig(max_range=10.0)
-    cfg.detector.voxel_size = 0.02
+    cfg.detector.voxel_size = 0.03  # a board at 5 m still keeps ~100 points
     return cfg
 
 
@@ -284,7 +284,7 @@ class CameraDepthConfig(BaseModel):
     detection: BoardDetectionConfig = Field(
         default_factory=BoardDetectionConfig, description="Chessboard detection in the RGB image."
     )
-    depth_step: int = Field(2, ge=1, description="Use every n-th depth pixel (speed).")
+    depth_step: int = Field(3, ge=1, description="Use every n-th depth pixel (speed).")
     max_depth: float = Field(10.0, gt=0, description="Ignore depth beyond this [m].")
     extraction: PlaneExtractionConfig = Field(
         default_factory=_depth_extraction_default, description="Plane extraction from depth points."

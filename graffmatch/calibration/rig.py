@@ -100,9 +100,12 @@ class CalibrationScene:
     T_world_boards: Array  # (n, 4, 4)
     ground_z: float | None = None  # world z of an infinite-ish ground plane, or None
     ground_half_size: float = 15.0
+    walls: Array | None = None  # (k, 4, 3) extra background quads (world), e.g. a back wall
 
     def __post_init__(self) -> None:
         self.T_world_boards = np.asarray(self.T_world_boards, dtype=float).reshape(-1, 4, 4)
+        if self.walls is not None:
+            self.walls = np.asarray(self.walls, dtype=float).reshape(-1, 4, 3)
 
     @property
     def n_boards(self) -> int:
@@ -143,6 +146,8 @@ class CalibrationScene:
             ground_id = int(
                 scene.add_triangles(o3d.core.Tensor(g.astype(np.float32)), o3d.core.Tensor(tris))
             )
+        for quad in [] if self.walls is None else self.walls:
+            scene.add_triangles(o3d.core.Tensor(quad.astype(np.float32)), o3d.core.Tensor(tris))
         return scene, ground_id
 
 
@@ -249,9 +254,9 @@ def render_chessboard_image(
     s = int(supersample)
     H, W = camera.height * s, camera.width * s
     # A mildly textured grey background so that the detector sees some clutter.
-    yy, xx = np.mgrid[0:H, 0:W]
-    base = 110 + 25 * np.sin(xx / (37.0 * s)) * np.cos(yy / (53.0 * s))
-    img = base.astype(np.float32)
+    sx = np.sin(np.arange(W, dtype=np.float32) / (37.0 * s))
+    cy = np.cos(np.arange(H, dtype=np.float32) / (53.0 * s))
+    img = (110.0 + 25.0 * cy[:, None] * sx[None, :]).astype(np.float32)
     T_cam_world = invert(T_world_camera)
     centres = transform_points(T_cam_world, scene.T_world_boards[:, :3, 3])
     order = np.argsort(-centres[:, 2])  # far to near
@@ -443,8 +448,12 @@ def make_camera_depth_scenario(
     depth_camera: PinholeCamera | None = None,
     depth_noise: float = 0.01,
     parallel_boards: bool = False,
+    back_wall: float | None = 7.0,
 ) -> CameraDepthScenario:
     """Boards 2–5 m in front of an RGB camera and a depth camera (≤ 0.25 m, ≤ 10° apart).
+
+    ``back_wall``: distance of a wall behind the boards [m] (None: boards float in empty
+    space); the depth camera sees it as clutter planes the camera has no counterpart for.
 
     Boards are rejection-sampled so that each one lies wholly inside both images and their
     image footprints do not overlap (the detector masks one board after the other).
@@ -521,7 +530,13 @@ def make_camera_depth_scenario(
             break
     else:
         raise InvalidInputError(f"cannot place {n_boards} boards inside both camera views")
-    scene = CalibrationScene(board, T_boards, ground_z=None)
+    walls = None
+    if back_wall is not None:
+        z = float(back_wall)
+        walls = np.array(
+            [[[-3 * z, -3 * z, z], [3 * z, -3 * z, z], [3 * z, 3 * z, z], [-3 * z, 3 * z, z]]]
+        )
+    scene = CalibrationScene(board, T_boards, ground_z=None, walls=walls)
     image = render_chessboard_image(scene, T_world_camera, camera, rng)
     depth = render_depth(scene, T_world_depth, depth_camera, rng, noise_std=depth_noise)
     return CameraDepthScenario(
