@@ -718,10 +718,21 @@ def _read_json_dir(d: Path) -> dict[str, Any]:
     )
 
 
-def make_report(results_dir: str | Path, out_dir: str | Path | None = None) -> Path:
-    """Write the report folder for a results folder (default: ``<results_dir>/report``)."""
+def make_report(
+    results_dir: str | Path, out_dir: str | Path | None = None, figures: bool = True
+) -> Path:
+    """Write the report folder for a results folder and return it.
+
+    ``results_dir`` is the folder of ``run_study`` (with ``records/``) or the folder of
+    ``run_benchmark`` (with ``results/``). Default ``out_dir``: ``report/`` next to the records
+    (for a benchmark folder: ``<benchmark>/report``). ``figures=False``: tables and numbers
+    only (seconds instead of tens of seconds for large studies).
+    """
     results_dir = Path(results_dir)
-    out = Path(out_dir) if out_dir is not None else results_dir / "report"
+    default_out = results_dir / "report"
+    if not (results_dir / "records").is_dir() and (results_dir / "results" / "records").is_dir():
+        results_dir = results_dir / "results"
+    out = Path(out_dir) if out_dir is not None else default_out
     records = load_records(results_dir)
     if not records:
         raise InvalidInputError(f"{results_dir} holds no records yet")
@@ -774,26 +785,27 @@ def make_report(results_dir: str | Path, out_dir: str | Path | None = None) -> P
         for m in _ordered({r["method"] for r in main if r["kind"] == "landmark"}, TABLE_I_ORDER)
         if m != GT_METHOD
     ]
-    figures: list[tuple[str, str]] = []
+    fig_links: list[tuple[str, str]] = []
     suites = sorted({r["suite"] for r in main})
-    for suite in suites:
-        recs = [r for r in main if r["suite"] == suite]
-        p = fig_dir / f"lmr_{suite}.png"
-        fig_lmr(recs, landmark_methods, p, suite)
-        figures.append((f"LMR curves, {suite}", p.relative_to(out).as_posix()))
-        p = fig_dir / f"errors_{suite}.png"
-        fig_error_heatmaps(recs, landmark_methods, p, suite)
-        figures.append((f"alignment-error heatmaps, {suite}", p.relative_to(out).as_posix()))
-    if len(suites) > 1:
-        p = fig_dir / "lmr_all.png"
-        fig_lmr(main, landmark_methods, p, "all suites")
-        figures.append(("LMR curves, all suites", p.relative_to(out).as_posix()))
-    fig_runtimes(main, [m for m in all_methods if m != GT_METHOD], fig_dir)
-    figures.append(("runtime per method", "figures/runtime_total.png"))
-    if (fig_dir / "runtime_stages.png").is_file():
-        figures.append(("runtime per stage", "figures/runtime_stages.png"))
-    fig_rho(rr, stats, fig_dir / "rho_sensitivity.png")
-    figures.append(("rho sensitivity and centroid distances", "figures/rho_sensitivity.png"))
+    if figures:
+        for suite in suites:
+            recs = [r for r in main if r["suite"] == suite]
+            p = fig_dir / f"lmr_{suite}.png"
+            fig_lmr(recs, landmark_methods, p, suite)
+            fig_links.append((f"LMR curves, {suite}", p.relative_to(out).as_posix()))
+            p = fig_dir / f"errors_{suite}.png"
+            fig_error_heatmaps(recs, landmark_methods, p, suite)
+            fig_links.append((f"alignment-error heatmaps, {suite}", p.relative_to(out).as_posix()))
+        if len(suites) > 1:
+            p = fig_dir / "lmr_all.png"
+            fig_lmr(main, landmark_methods, p, "all suites")
+            fig_links.append(("LMR curves, all suites", p.relative_to(out).as_posix()))
+        fig_runtimes(main, [m for m in all_methods if m != GT_METHOD], fig_dir)
+        fig_links.append(("runtime per method", "figures/runtime_total.png"))
+        if (fig_dir / "runtime_stages.png").is_file():
+            fig_links.append(("runtime per stage", "figures/runtime_stages.png"))
+        fig_rho(rr, stats, fig_dir / "rho_sensitivity.png")
+        fig_links.append(("rho sensitivity and centroid distances", "figures/rho_sensitivity.png"))
 
     # summary
     errors = [r for r in main if r.get("status") != "ok"]
@@ -859,7 +871,12 @@ def make_report(results_dir: str | Path, out_dir: str | Path | None = None) -> P
         )
         + "\n",
         "## Figures\n",
-        "\n".join(f"- [{t}]({p})\n\n  ![{t}]({p})" for t, p in figures) + "\n",
+        (
+            "\n".join(f"- [{t}]({p})\n\n  ![{t}]({p})" for t, p in fig_links)
+            if fig_links
+            else "Not drawn (make_report(..., figures=False))."
+        )
+        + "\n",
         "All numbers per (suite, case, method): [metrics.csv](metrics.csv), "
         "[metrics.json](metrics.json).\n",
     ]

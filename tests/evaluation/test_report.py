@@ -181,3 +181,15 @@ def test_rho_section(study: Path, report: Path) -> None:
     st = rho["centroid_distances"]["alpha"]
     assert st["n_distances"] == 6 * 2 * 66 and 0 < st["mean_m"] < 100
     assert sum(st["counts"]) == st["n_distances"]
+
+
+def test_report_accepts_a_benchmark_folder(study: Path, tmp_path: Path) -> None:
+    import shutil
+
+    bench = tmp_path / "bench"
+    shutil.copytree(study, bench / "results", ignore=shutil.ignore_patterns("report"))
+    out = make_report(bench, figures=False)
+    assert out == bench / "report"
+    a = json.loads((out / "table1.json").read_text())
+    b = json.loads((study / "report" / "table1.json").read_text())
+    assert a == b
