@@ -100,6 +100,13 @@ class LoopClosureConfig(BaseModel):
     max_pairs: int | None = Field(
         None, ge=1, description="Keep at most this many revisits, evenly spaced (None: all)."
     )
+    max_landmarks_per_type: int | None = Field(
+        None,
+        ge=1,
+        description="Keep at most this many lines and this many planes per place, the largest "
+        "by 'extent' (length / area); None keeps all (the paper). Fewer, more salient landmarks "
+        "raise the IIR: with n planes per scan the IIR cannot exceed about 1/n.",
+    )
     use_labels: bool = Field(
         True, description="Pass the dataset's semantic labels to the extractor when it has them."
     )
@@ -251,6 +258,22 @@ def check_validity(
 
 
 # ---- per-place landmark extraction (parallel, cached) ---------------------------------------
+def keep_most_salient(ls: LandmarkSet, max_per_type: int | None) -> LandmarkSet:
+    """At most ``max_per_type`` landmarks of each type, the largest by ``extent`` (ties and
+    missing extents: support, then original order); the original order is kept."""
+    if max_per_type is None or len(ls) == 0:
+        return ls
+    n = len(ls)
+    extent = np.nan_to_num(np.asarray(ls.attributes.get("extent", np.zeros(n)), float).reshape(n))
+    support = np.nan_to_num(np.asarray(ls.attributes.get("support", np.zeros(n)), float).reshape(n))
+    keep = np.zeros(n, bool)
+    for t in np.unique(ls.types):
+        idx = np.flatnonzero(ls.types == t)
+        order = np.lexsort((idx, -support[idx], -extent[idx]))
+        keep[idx[order[:max_per_type]]] = True
+    return ls[np.flatnonzero(keep)]
+
+
 def _landmark_file(out_dir: Path, scan_index: int) -> Path:
     return out_dir / LANDMARK_DIR / f"{scan_index:06d}.npz"
 
@@ -266,6 +289,7 @@ def _extract_one(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         ls = extractor.extract(scan.points, labels)
+    ls = keep_most_salient(ls, config.max_landmarks_per_type)
     ls.save(out_file, include_points=config.store_support_points)
     return scan_index, ls.counts(), time.perf_counter() - t0
 
@@ -303,6 +327,7 @@ def extract_place_landmarks(
             dataset.scan_path(int(i)),
             dataset.label_path(int(i)) if config.use_labels else None,
         )
+        + f"-top{config.max_landmarks_per_type}"
         for i in scan_indices
     }
     todo = [

@@ -20,6 +20,7 @@ from graffmatch.evaluation.loop_closures import (
     find_revisits,
     ground_truth_matches,
     iir_case,
+    keep_most_salient,
     path_lengths,
     possible_matches,
     select_places,
@@ -152,6 +153,15 @@ def test_gate_is_applied_on_invariant_distance(rng: np.random.Generator) -> None
     assert np.all(d < np.deg2rad(6.0)) and np.allclose(d, D[m[:, 0], m[:, 1]])
     m_tight, _ = ground_truth_matches(source, target, np.eye(4), tau_d_deg=1e-4)
     assert len(m_tight) < len(m)
+
+
+def test_keep_most_salient(rng: np.random.Generator) -> None:
+    ls = _scene(rng, 6, 8)
+    ls.attributes["extent"] = np.array([5, 1, 9, 3, 7, 2, 10, 40, 20, 30, 50, 60, 5, 1], float)
+    kept = keep_most_salient(ls, 3)
+    assert kept.counts() == {"points": 0, "lines": 3, "planes": 3}
+    assert sorted(kept.attributes["extent"].tolist()) == [5, 7, 9, 40, 50, 60]
+    assert keep_most_salient(ls, None) is ls and len(keep_most_salient(ls, 100)) == len(ls)
 
 
 # ---- IIR and cases ----------------------------------------------------------------------------
