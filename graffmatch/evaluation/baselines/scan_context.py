@@ -16,7 +16,8 @@ The estimate is yaw-only, ``T_target_source = [Rz(yaw), 0]``: Scan Context has n
 which is why the paper finds it weak for baselines of up to 16 m.
 
 ``ScanContextICP`` refines that yaw with point-to-plane ICP (Open3D) on both raw scans voxelised
-to ``icp_voxel`` (0.35 m, as FPFH); since the initial translation is zero while the true one can
+to ``icp_voxel`` = 0.5 m (on 3 KITTI + 3 BALM pairs: the same errors as 0.35 m to 0.01 m /
+0.06 deg, 40 % less CPU); since the initial translation is zero while the true one can
 be metres, ICP runs coarse-to-fine with correspondence distances ``icp_distances`` (3, 1.5,
 0.75 m), ``icp_iterations`` (30) each.
 """
@@ -175,7 +176,7 @@ def multiscale_icp(
 class ScanContextICP(ScanContext):
     """Scan Context yaw as the initial guess of ICP on the raw scans."""
 
-    icp_voxel: float = 0.35
+    icp_voxel: float = 0.5
     icp_distances: tuple[float, ...] = (3.0, 1.5, 0.75)
     icp_iterations: int = 30
     name: str = "ScanContext+ICP"
