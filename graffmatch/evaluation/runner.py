@@ -326,22 +326,30 @@ def execute_task(task: Task) -> dict[str, Any]:
     wall = time.perf_counter() - t0
     timings = dict(out.timings)
     timings.setdefault("total", wall)
-    # Point methods return point correspondences, not landmark indices: no LMR for them.
-    assoc = out.associations if kind == "landmark" else None
-    rec = M.PairRecord.from_output(
-        pair_id=task.pair_id,
-        method=name,
-        source=pair.source,
-        target=pair.target,
-        T_target_source_gt=T_gt,
-        T_target_source_est=out.T_target_source if out.valid else None,
-        associations=assoc,
-        timings=timings,
-        valid=out.valid,
-        kind=kind,
-        rho=task.rho_eval,
-        info=_jsonable_info(out.info),
-    )
+
+    def evaluate(o: _Output) -> M.PairRecord:
+        # Point methods return point correspondences, not landmark indices: no LMR for them.
+        return M.PairRecord.from_output(
+            pair_id=task.pair_id,
+            method=name,
+            source=pair.source,
+            target=pair.target,
+            T_target_source_gt=T_gt,
+            T_target_source_est=o.T_target_source if o.valid else None,
+            associations=o.associations if kind == "landmark" else None,
+            timings=timings,
+            valid=o.valid,
+            kind=kind,
+            rho=task.rho_eval,
+            info=_jsonable_info(o.info),
+        )
+
+    try:
+        rec = evaluate(out)
+    except Exception as exc:  # malformed output (e.g. indices out of range): an error record
+        error = f"invalid output: {type(exc).__name__}: {exc}"
+        out = _Output(None, np.zeros((0, 2), np.intp), {}, False, {})
+        rec = evaluate(out)
     if kind != "landmark":
         rec.n_associations = len(out.associations)
     rot, trans = rec.errors()
@@ -634,6 +642,18 @@ def _git_commit() -> str | None:
     return r.stdout.strip() or None
 
 
+def _method_params(method: str | EvaluationMethod) -> Any:
+    """The parameters a method runs with, for config.json (what the paper calls its setup)."""
+    try:
+        obj = _registry_method(method) if isinstance(method, str) else method
+        params = getattr(obj, "params", None)
+        if params is None and hasattr(obj, "__dataclass_fields__"):
+            params = {k: getattr(obj, k) for k in obj.__dataclass_fields__}
+        return _jsonable_info(dict(params or {}))
+    except Exception as exc:  # never fail a study on bookkeeping; say why it is missing
+        return {"unavailable": f"{type(exc).__name__}: {exc}"}
+
+
 def default_methods(quick: bool = False) -> list[str]:
     """Every registered method; quick mode keeps the fast point methods only."""
     from graffmatch.evaluation import methods as registry
@@ -719,6 +739,9 @@ def run_study(
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
         "started_utc": started,
         "record_version": RECORD_VERSION,
+    }
+    config_doc["method_params"] = {
+        name: _method_params(m) for name, m in [*method_objs.items(), *((r, r) for r in rho_specs)]
     }
     atomic_write_json(out / "config.json", config_doc)
 

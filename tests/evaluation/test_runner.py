@@ -110,6 +110,7 @@ class Scripted:
     trans_m: float = 0.1
     fail_cases: tuple[int, ...] = ()
     kill_on: str | None = None
+    bad_index: bool = False
     driver_pid: int = field(default_factory=os.getpid)
 
     def __call__(self, pair: SynthPair) -> SimpleNamespace:
@@ -124,6 +125,8 @@ class Scripted:
             same = [b for b in range(len(m)) if b != a and pair.source.types[m[b, 0]] == t]
             wrong.append([m[a, 0], m[same[0], 1]])
         assoc = np.vstack([m, np.asarray(wrong, dtype=int).reshape(-1, 2)])
+        if self.bad_index:
+            assoc[0, 1] = len(pair.target) + 5  # a buggy method: index out of range
         rot, trans = (30.0, 10.0) if pair.case in self.fail_cases else (self.rot_deg, self.trans_m)
         D = make_transform(rot_z(np.radians(rot)), [trans, 0.0, 0.0])
         h = zlib.crc32(f"{self.name}{pair.pair_id}".encode()) % 1000
@@ -447,3 +450,26 @@ def test_changed_pairs_are_recomputed_and_stale_records_not_reported(tmp_path: P
     assert sorted({r["pair_id"] for r in recs}) == ["p000", "p001"]
     assert len(load_records(out, current_only=False)) == 6
     assert {r["case"] for r in recs if r["pair_id"] == "p001"} == {3}
+
+
+def test_malformed_output_is_an_error_record_and_config_has_method_params(tmp_path: Path) -> None:
+    cfg = StudyConfig(rho_values=[])
+    out = run_study(
+        {"s": make_pairs(2)},
+        [Scripted(name="Buggy", bad_index=True), "CPMatch", "GraffMatch[epsilon=0.3]"],
+        tmp_path,
+        "serial",
+        progress=False,
+        config=cfg,
+    )
+    bad = [r for r in load_records(out) if r["method"] == "Buggy"]
+    assert len(bad) == 2
+    assert all(r["status"] == "error" and "out of range" in r["error"] for r in bad)
+    assert all(r["n_associations"] == 0 and not r["success"] for r in bad)
+    params = json.loads((out / "config.json").read_text())["method_params"]
+    assert params["Buggy"]["bad_index"] is True
+    assert params["CPMatch"]["max_cp_distance"] > 0
+    assert params["GraffMatch[epsilon=0.3]"]["epsilon"] == 0.3
+    assert params["GraffMatch[epsilon=0.3]"]["rho"] == 40.0
+    ok = [r for r in load_records(out) if r["method"] in ("CPMatch", "GraffMatch[epsilon=0.3]")]
+    assert len(ok) == 4 and all(r["status"] == "ok" for r in ok)
