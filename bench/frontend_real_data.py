@@ -219,6 +219,7 @@ def extract_all(folder: Path, frames: list[int], ex: LandmarkExtractor) -> tuple
                 "planes": c["planes"],
                 "ms": 1000 * ex.last_timings.get("total", float("nan")),
                 "landmark_bytes": size,
+                "landmark_bytes_with_points": len(ls.to_bytes(include_points=True)),
                 "scan_bytes": path.stat().st_size,
             }
         )
@@ -291,7 +292,8 @@ def main() -> None:
         print(
             f"  frame {r['frame']}: {r['lines']:3d} poles {r['planes']:3d} planes  {r['ms']:6.1f} ms  "
             f"file {r['landmark_bytes']} B vs scan {r['scan_bytes']} B "
-            f"(ratio 1:{r['scan_bytes'] / max(r['landmark_bytes'], 1):.0f})"
+            f"(ratio 1:{r['scan_bytes'] / max(r['landmark_bytes'], 1):.0f}; with support points "
+            f"{r['landmark_bytes_with_points']} B)"
         )
     pairs = [evaluate_pair(lss, poses, 0, b, kitti) for b in (1, 3, 5)]
     print(

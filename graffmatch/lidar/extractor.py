@@ -204,7 +204,10 @@ class LandmarkExtractor:
         t, c = time.perf_counter(), time.process_time()
         planes = None
         if cfg.planes.enabled:
-            planes = extract_planes(P[~is_ground], cfg.planes)
+            keep = ~is_ground
+            if cfg.planes.max_range is not None:
+                keep &= P[:, 0] ** 2 + P[:, 1] ** 2 <= cfg.planes.max_range**2
+            planes = extract_planes(P[keep], cfg.planes)
         timings["planes"] = time.perf_counter() - t
         cpu["planes"] = time.process_time() - c
 
