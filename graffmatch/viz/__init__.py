@@ -1,5 +1,6 @@
-"""Interactive 3D views and static plots of matches (tools layer)."""
+"""Pictures of matches: the interactive 3D view (plotly, one offline HTML) and static PNGs."""
 
 from graffmatch.viz.match_view import match_figure, write_match_view
+from graffmatch.viz.plots import plot_match_topdown
 
-__all__ = ["match_figure", "write_match_view"]
+__all__ = ["match_figure", "plot_match_topdown", "write_match_view"]
