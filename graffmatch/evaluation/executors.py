@@ -205,7 +205,7 @@ class DaskExecutor:
         from distributed import as_completed
 
         it = enumerate(items)
-        index: dict[str, int] = {}
+        pending: dict[str, tuple[int, Any]] = {}  # key -> (index, future)
         ac = as_completed(with_results=False)
 
         def submit_one() -> bool:
@@ -215,25 +215,23 @@ class DaskExecutor:
                 return False
             # pure=False: every task runs (no result de-duplication by argument hash).
             fut = self.client.submit(fn, item, pure=False)
-            index[fut.key] = i
+            pending[fut.key] = (i, fut)
             ac.add(fut)
             return True
 
-        n_pending = 0
-        while n_pending < self.max_in_flight and submit_one():
-            n_pending += 1
+        while len(pending) < self.max_in_flight and submit_one():
+            pass
         try:
             for fut in ac:
-                n_pending -= 1
-                i = index.pop(fut.key)
-                result = fut.result()  # re-raises the task's exception
+                i, _ = pending.pop(fut.key)
+                result = fut.result()  # re-raises the task's exception (or KilledWorker)
                 fut.release()
                 yield i, result
-                if submit_one():
-                    n_pending += 1
+                submit_one()
         finally:
-            if n_pending:
+            if pending:  # an error or an abandoned generator: stop the remaining tasks
                 ac.clear()
+                self.client.cancel([f for _, f in pending.values()])
 
     def close(self) -> None:
         if self._own_client:
