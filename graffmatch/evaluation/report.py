@@ -635,7 +635,7 @@ def fig_runtimes(records: Sequence[Mapping[str, Any]], methods: Sequence[str], o
 
     def box(path: Path, series: list[tuple[str, list[float]]], ylabel: str, title: str) -> None:
         fig, ax = plt.subplots(figsize=(max(6.0, 0.32 * len(series) + 2), 4.8))
-        fig.subplots_adjust(left=0.09, right=0.99, bottom=0.38, top=0.92)
+        fig.subplots_adjust(left=0.12, right=0.99, bottom=0.3, top=0.92)
         if series:
             ax.boxplot([v for _, v in series], showfliers=False)
             ax.set_xticks(
@@ -694,10 +694,11 @@ def fig_rho(rho_rows: Sequence[Mapping[str, Any]], stats: Mapping[str, Any], pat
         )
     a1.set(xlabel="pairwise landmark-centroid distance [m]", ylabel="density")
     a1.legend(fontsize=8)
-    for suite in sorted({r["suite"] for r in rho_rows}):
+    for k, suite in enumerate(sorted({r["suite"] for r in rho_rows})):
         rr = [r for r in rho_rows if r["suite"] == suite]
-        a2.plot([r["rho"] for r in rr], [r["auc"] for r in rr], "o-", label=f"{suite} AUC")
-        a2.plot([r["rho"] for r in rr], [r["recall"] for r in rr], "x--", label=f"{suite} recall")
+        rho, c = [r["rho"] for r in rr], f"C{k % 10}"
+        a2.plot(rho, [r["auc"] for r in rr], "o-", color=c, label=f"{suite} AUC")
+        a2.plot(rho, [r["recall"] for r in rr], "x--", color=c, label=f"{suite} recall")
     a2.set_xscale("log")
     a2.set(xlabel=r"$\rho$", ylabel="AUC / recall", ylim=(-0.02, 1.02))
     a2.set_title(r"GraffMatch sensitivity to $\rho$")
