@@ -85,6 +85,8 @@ class ScanSequence:
     """
 
     name: str
+    #: Encoding of the files returned by :meth:`scan_path` ("kitti-bin": float32 x y z i).
+    scan_format: str = "kitti-bin"
     _paths: list[Path]
     _poses: Array
     _times: Array

@@ -125,6 +125,8 @@ def interpolate_poses(gt: NDArray, utimes: NDArray) -> NDArray:
 class NCLT(ScanSequence):
     """One NCLT session (e.g. ``"2012-04-29"``); LiDAR-frame ground truth at scan times."""
 
+    scan_format = "nclt-bin"  # packed uint16 points: read with read_nclt_bin
+
     def __init__(self, root: str | Path, date: str, max_gap_s: float = 1.0) -> None:
         root = Path(root)
         self.root = root

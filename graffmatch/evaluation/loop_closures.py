@@ -36,7 +36,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from graffmatch.association.putative import count_all_to_all
-from graffmatch.datasets.base import Dataset
+from graffmatch.datasets.base import Dataset, ScanSequence
 from graffmatch.errors import DegenerateGeometryError, InvalidInputError, MalformedFileError
 from graffmatch.evaluation.executors import LocalProcessExecutor, SerialExecutor
 from graffmatch.geometry.distance import cross_distances
@@ -533,6 +533,7 @@ def build_loop_closure_dataset(
         "dataset": {
             "name": getattr(dataset, "name", type(dataset).__name__),
             "loader": type(dataset).__name__,
+            "scan_format": dataset.scan_format if isinstance(dataset, ScanSequence) else "unknown",
             "n_scans": len(dataset),
         },
         "config": config.model_dump(mode="json"),
@@ -688,6 +689,8 @@ class LoopClosureDataset(Sequence):
         self.config = LoopClosureConfig.model_validate(doc["config"])
         self.summary: dict[str, Any] = doc.get("summary", {})
         self.name: str = doc.get("dataset", {}).get("name", self.root.name)
+        #: Encoding of the scan files ("kitti-bin", "nclt-bin", "unknown") for point methods.
+        self.scan_format: str = doc.get("dataset", {}).get("scan_format", "kitti-bin")
         self.places: dict[int, dict[str, Any]] = {int(p["scan"]): p for p in doc["places"]}
         self.pairs = [self._make_pair(k, p) for k, p in enumerate(doc["pairs"])]
 
