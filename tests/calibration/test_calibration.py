@@ -15,6 +15,7 @@ from graffmatch.calibration import (
     calibrate_planes,
     detect_board_planes,
     extract_depth_planes,
+    format_demo_report,
     run_calibration_demo,
 )
 from graffmatch.calibration.rig import make_camera_depth_scenario, make_lidar_lidar_scenario
@@ -206,10 +207,12 @@ def test_rig_is_deterministic():
 
 
 def test_demo_report():
-    rep = run_calibration_demo("lidar-lidar", seed=1)
+    rep = run_calibration_demo("camera-depth", seed=1)
     assert rep["within_bounds"] and rep["valid"]
     assert rep["rotation_error_deg"] <= ROT_BOUND_DEG
     assert rep["translation_error_m"] <= TRANS_BOUND_M
-    assert {"simulate", "graffmatch", "total"} <= set(rep["timings_s"])
+    assert {"simulate", "detect_boards", "graffmatch", "total"} <= set(rep["timings_s"])
+    assert "error vs truth" in format_demo_report(rep)
+    assert rep["T_depth_camera"] and np.allclose(np.array(rep["T_true"])[3], [0, 0, 0, 1])
     with pytest.raises(GraffMatchError):
         run_calibration_demo("lidar-camera")  # type: ignore[arg-type]
