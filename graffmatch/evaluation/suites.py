@@ -131,7 +131,7 @@ register_suite(
             max_distance=16.0,
             wide_baseline_min_distance=5.0,
         ),
-        quick_overrides={"max_places": 12},
+        quick_overrides={"place_spacing": 3.0, "max_places": 16},
     )
 )
 

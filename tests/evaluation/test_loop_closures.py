@@ -270,6 +270,6 @@ def test_suites_registry(shared_data: Path, tmp_path: Path) -> None:
     assert suite_config("sim-downtown") == LoopClosureConfig()  # the paper's rules
     cfg = suite_config("balm_courtyard")
     assert cfg.min_path_length == 10.0 and cfg.wide_baseline_min_distance == 5.0
-    assert suite_config("balm_courtyard", quick=True).max_places == 12
+    assert suite_config("balm_courtyard", quick=True).max_places == 16
     with pytest.raises(InvalidInputError, match="unknown suite"):
         build_suite("nope", tmp_path)
