@@ -142,7 +142,8 @@ def make_progress(transient: bool = True) -> Progress:
         TimeRemainingColumn(),
         console=err,
         transient=transient,
-        disable=STATE.quiet,
+        # No bars in logs / pipes (they would only leave blank lines); -q turns them off too.
+        disable=STATE.quiet or not err.is_terminal,
     )
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import re
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -28,6 +29,8 @@ def is_landmark_file(path: Path) -> bool:
     """A graffmatch landmark file is an ``.npz`` with a ``meta`` entry naming the format."""
     if path.suffix.lower() != ".npz":
         return False
+    if path.is_file() and not zipfile.is_zipfile(path):
+        raise MalformedFileError(f"{path}: not a valid .npz file (not a zip archive)")
     try:
         with np.load(path, allow_pickle=False) as z:
             if "meta" not in z.files:

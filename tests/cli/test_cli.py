@@ -356,3 +356,23 @@ def test_demo_exit_code_follows_its_verdict():
     res = run("demo", "--mode", "landmarks", code=None)
     assert "rotation error" in res.stdout
     assert res.exit_code == (0 if "PASS" in res.stdout else 3)
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "expect"),
+    [
+        ("bad.npz", b"garbage", "not a valid .npz"),
+        ("bad.bin", b"garbage1", "not a multiple of 16"),
+        ("empty.npz", None, "0 landmark"),
+    ],
+)
+def test_malformed_inputs_give_one_line_naming_the_file(synth, tmp_path, name, content, expect):
+    path = tmp_path / name
+    if content is None:
+        LandmarkSet.empty().save(path)
+    else:
+        path.write_bytes(content)
+    res = run("register", path, synth["target"], "-o", tmp_path / "r.json", code=1)
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and expect in lines[0], res.stderr
+    assert name in lines[0] or "source" in lines[0]
