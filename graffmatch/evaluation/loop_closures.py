@@ -809,14 +809,19 @@ def plot_dataset_details(ds: LoopClosureDataset, path: str | Path) -> Path:
     data, pos, colors = [], [], []
     for k, c in enumerate((1, 2, 3)):
         ps = ds.of_case(c)
-        data += [[p.n_true_lines for p in ps] or [0], [p.n_true_planes for p in ps] or [0]]
+        if not ps:  # an empty case gets no box (not a misleading box at zero)
+            continue
+        data += [[p.n_true_lines for p in ps], [p.n_true_planes for p in ps]]
         pos += [3 * k + 0.6, 3 * k + 1.4]
         colors += ["#1f77b4", "#9467bd"]
-    bp = ax1.boxplot(data, positions=pos, widths=0.7, patch_artist=True, showfliers=False)
-    for patch, col in zip(bp["boxes"], colors, strict=True):
-        patch.set_facecolor(col)
-        patch.set_alpha(0.6)
-    ax1.set_xticks([1, 4, 7], ["case 1", "case 2", "case 3"])
+    if data:
+        bp = ax1.boxplot(data, positions=pos, widths=0.7, patch_artist=True, showfliers=False)
+        for patch, col in zip(bp["boxes"], colors, strict=True):
+            patch.set_facecolor(col)
+            patch.set_alpha(0.6)
+    counts = ds.case_counts()
+    ax1.set_xticks([1, 4, 7], [f"case {c}\n(n={counts[c]})" for c in (1, 2, 3)])
+    ax1.set_xlim(-0.5, 8.5)
     ax1.set_ylabel("true matches per pair")
     from matplotlib.patches import Patch
 
