@@ -345,6 +345,7 @@ class RefineChoice(str, Enum):
     epilog="[bold]Examples[/bold]\n\n"
     "  graffmatch register kitti/velodyne/000000.bin kitti/velodyne/000005.bin\n\n"
     "  graffmatch register a.npz b.npz --gt T_b_a.txt --view match.html\n\n"
+    "  graffmatch register seq/velodyne/000000.bin seq/velodyne/000005.bin --gt auto\n\n"
     "  graffmatch register a.bin b.bin --refine icp --pose-format kitti --pose-out T.txt\n\n"
     "Exit code 3 when no valid registration was found.",
 )
@@ -355,8 +356,9 @@ def register(
     gt: Annotated[
         str | None,
         typer.Option(
-            help="Ground-truth T_target_source: a text file with a 4x4 or 3x4 matrix, or the "
-            "12/16 numbers inline."
+            help="Ground-truth T_target_source: a text file with a 4x4 or 3x4 matrix, the "
+            "12/16 numbers inline, or 'auto' (from the poses of the KITTI-layout folder of "
+            "both scans)."
         ),
     ] = None,
     output: Annotated[
@@ -387,10 +389,13 @@ def register(
     ] = None,
 ) -> None:
     """Register SOURCE to TARGET: print T_target_source, inliers, score, κ and validity."""
-    from graffmatch.cli.inputs import path_record, read_transform, write_pose_file
+    from graffmatch.cli.inputs import gt_from_dataset, path_record, read_transform, write_pose_file
 
     # Check the cheap things first: a typo must not cost an extraction.
-    T_gt = read_transform(gt) if gt is not None else None
+    if gt == "auto":
+        T_gt = gt_from_dataset(source, target)
+    else:
+        T_gt = read_transform(gt) if gt is not None else None
     for p in (source, target):
         if not p.exists():
             raise MalformedFileError(f"{p}: input not found")
