@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
@@ -119,6 +119,16 @@ class LoopClosureConfig(BaseModel):
     extractor: LandmarkExtractorConfig = Field(
         default_factory=LandmarkExtractorConfig, description="Front-end configuration."
     )
+
+    @model_validator(mode="after")
+    def _check(self) -> LoopClosureConfig:
+        hi, lo = self.case_thresholds
+        if not 0 <= lo <= hi <= 1:
+            raise ValueError("case_thresholds must be (case-1 bound, case-2 bound), 1 >= hi >= lo >= 0")
+        wb = self.wide_baseline_min_distance
+        if wb is not None and wb >= self.max_distance:
+            raise ValueError("wide_baseline_min_distance must be below max_distance")
+        return self
 
 
 # ---- places and revisits -------------------------------------------------------------------

@@ -172,6 +172,11 @@ def test_iir_cases_and_possible_matches(rng: np.random.Generator) -> None:
     a, b = _scene(rng, 6, 8), _scene(rng, 3, 11)
     assert possible_matches(a, b) == 6 * 3 + 8 * 11
     assert possible_matches(a, LandmarkSet.empty()) == 0
+    assert iir_case(0.04, (0.1, 0.05)) == 3
+    with pytest.raises(ValueError, match="case_thresholds"):
+        LoopClosureConfig(case_thresholds=(0.03, 0.05))
+    with pytest.raises(ValueError, match="wide_baseline"):
+        LoopClosureConfig(wide_baseline_min_distance=20.0)
 
 
 # ---- validity -----------------------------------------------------------------------------------
