@@ -34,7 +34,7 @@ from graffmatch.cli.common import (
     stage,
     write_config_next_to,
 )
-from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.errors import GraffMatchError, InvalidInputError, MalformedFileError
 
 try:
     __version__ = _pkg_version("graffmatch")
@@ -687,8 +687,19 @@ def view(
     no_points: Annotated[
         bool, typer.Option("--no-points", help="Do not re-read the scans; landmarks only.")
     ] = False,
+    png: Annotated[
+        Path | None,
+        typer.Option(help="Also write a static bird's-eye PNG (matplotlib, for reports)."),
+    ] = None,
+    screenshot: Annotated[
+        Path | None,
+        typer.Option(help="Also screenshot the 3D view to this PNG (needs chromium)."),
+    ] = None,
 ) -> None:
-    """Write the interactive 3D view of a saved registration result (one HTML file)."""
+    """Write the interactive 3D view of a saved registration result (one HTML file).
+
+    Example: graffmatch view result.json -o match.html --png match_topdown.png
+    """
     from graffmatch.cli.inputs import is_landmark_file, load_result, read_scan, resolve_path_record
     from graffmatch.geometry.landmarks import LandmarkSet
     from graffmatch.viz.match_view import write_match_view
@@ -718,14 +729,14 @@ def view(
     gt = data.get("ground_truth")
     mask = None if not gt else np.asarray(gt["inlier_mask"], bool)
     out_path = output or result.with_suffix(".html")
+    T = np.eye(4) if data["T_target_source"] is None else np.asarray(data["T_target_source"])
+    assoc = np.asarray(data["associations"], np.int64).reshape(-1, 2)
     written = write_match_view(
         out_path,
         lms["source"],
         lms["target"],
-        np.eye(4)
-        if data["T_target_source"] is None
-        else np.asarray(data["T_target_source"], float),
-        np.asarray(data["associations"], np.int64).reshape(-1, 2),
+        T,
+        assoc,
         source_points=points["source"],
         target_points=points["target"],
         inlier_mask=mask,
@@ -736,6 +747,29 @@ def view(
         initial=STATE.settings.view.initial,
     )
     info(f"view: {written}")
+    if png is not None:
+        from graffmatch.viz.plots import plot_match_topdown
+
+        plot_match_topdown(
+            lms["source"],
+            lms["target"],
+            T,
+            assoc,
+            points["source"],
+            points["target"],
+            mask,
+            side_by_side=STATE.settings.view.initial == "side",
+            path=png,
+            max_points=STATE.settings.view.max_points,
+        )
+        info(f"png: {png}")
+    if screenshot is not None:
+        from graffmatch.viz.browser import render_html
+
+        shot = render_html(written, screenshot=screenshot)
+        if not shot.rendered or shot.errors:
+            raise GraffMatchError(f"{written}: the browser did not render the view {shot.errors}")
+        info(f"screenshot: {screenshot}")
 
 
 # ----------------------------------------------------------------------------------------------

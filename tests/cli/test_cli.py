@@ -259,8 +259,9 @@ def test_extract_and_register_real_scans(kitti, tmp_path, monkeypatch):
     moved = tmp_path / "moved"
     shutil.copytree(folder, moved)
     shutil.rmtree(folder)
-    run("view", moved / "result.json", "--no-points")
+    run("view", moved / "result.json", "--no-points", "--png", tmp_path / "top.png")
     assert (moved / "result.html").stat().st_size > 1_000_000
+    assert (tmp_path / "top.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_extract_folder(kitti, tmp_path):
