@@ -46,6 +46,7 @@ class State:
 
     verbosity: int = 0  # -1 quiet, 0 normal, 1 -v, 2 -vv
     config_path: Path | None = None
+    runs_dir: Path = Path("runs")
     _settings: Any = field(default=None, repr=False)
 
     @property
@@ -67,9 +68,12 @@ out = Console(highlight=False, soft_wrap=True)  # results (stdout)
 err = Console(stderr=True, highlight=False, soft_wrap=True)  # progress, logs, errors
 
 
-def reset_state(verbosity: int = 0, config_path: Path | None = None) -> None:
+def reset_state(
+    verbosity: int = 0, config_path: Path | None = None, runs_dir: Path | None = None
+) -> None:
     STATE.verbosity = verbosity
     STATE.config_path = config_path
+    STATE.runs_dir = Path("runs") if runs_dir is None else Path(runs_dir)
     STATE._settings = None
     level = {-1: logging.ERROR, 0: logging.WARNING, 1: logging.INFO}.get(verbosity, logging.DEBUG)
     logging.getLogger("graffmatch").setLevel(level)

@@ -91,6 +91,14 @@ def main(
     quiet: Annotated[
         bool, typer.Option("--quiet", "-q", help="Only results and errors; no progress.")
     ] = False,
+    runs_dir: Annotated[
+        Path,
+        typer.Option(
+            "--runs-dir",
+            help="Where commands without -o create their time-named output folders.",
+            envvar="GRAFFMATCH_RUNS_DIR",
+        ),
+    ] = Path("runs"),
     config: Annotated[
         Path | None,
         typer.Option(
@@ -105,7 +113,7 @@ def main(
     """Global LiDAR landmark matching and registration (GraffMatch)."""
     if verbose and quiet:
         raise typer.BadParameter("use either --verbose or --quiet")
-    reset_state(-1 if quiet else verbose, config)
+    reset_state(-1 if quiet else verbose, config, runs_dir)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -267,7 +275,7 @@ def extract(
         out_dir = output
         out_dir.mkdir(parents=True, exist_ok=True)
     else:
-        out_dir = run_dir("runs", "extract")
+        out_dir = run_dir(STATE.runs_dir, "extract")
     ex = _extractor()
     rows = []
     with make_progress() as progress:
@@ -424,7 +432,7 @@ def register(
                 T_est = refine_info["T_target_source"]
 
     if output is None:
-        folder = run_dir("runs", "register")
+        folder = run_dir(STATE.runs_dir, "register")
         result_path = folder / "result.json"
     else:
         result_path = output
@@ -954,7 +962,7 @@ def benchmark(
     """
     from graffmatch.evaluation.benchmark import run_benchmark
 
-    out_dir = output or run_dir("runs", "benchmark")
+    out_dir = output or run_dir(STATE.runs_dir, "benchmark")
     out_dir.mkdir(parents=True, exist_ok=True)
     write_config_next_to(out_dir)
     res = run_benchmark(

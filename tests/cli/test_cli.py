@@ -132,6 +132,11 @@ def test_config_dump_yaml_roundtrip_and_env(tmp_path):
     assert "matcher.rho" in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
     typo = run("config", "dump", env={"GRAFFMATCH_MATCHER__RHOO": "3"}, code=1)
     assert "matcher.rhoo" in typo.stderr
+    # a partial file keeps the other defaults; GRAFFMATCH_CONFIG is the same as --config
+    cfg.write_text("matcher:\n  rho: 30\n")
+    part = yaml.safe_load(run("config", "dump", env={"GRAFFMATCH_CONFIG": str(cfg)}).stdout)
+    assert part["matcher"]["rho"] == 30 and part["matcher"]["epsilon"] == 0.2
+    assert part["extractor"] == yaml.safe_load(text)["extractor"]
     cfg.write_text("matcher: [1, 2]\n")
     assert "matcher" in run("config", "check", cfg, code=1).stderr
 
@@ -229,8 +234,7 @@ def test_icp_without_support_points_is_a_clear_error(synth, tmp_path):
     assert "support points" in res.stderr
 
 
-def test_extract_and_register_real_scans(kitti, tmp_path, monkeypatch):
-    monkeypatch.chdir(tmp_path)
+def test_extract_and_register_real_scans(kitti, tmp_path):
     s0, s5 = kitti["scans"][0], kitti["scans"][5]
     res = run("extract", s0, "-o", tmp_path / "lm0.npz")
     ls0 = LandmarkSet.load(tmp_path / "lm0.npz")
@@ -241,7 +245,7 @@ def test_extract_and_register_real_scans(kitti, tmp_path, monkeypatch):
 
     L = kitti["L"]
     T_gt = np.linalg.inv(L[5]) @ L[0]
-    res = run("register", s0, s5, "--gt", "auto", code=None)  # GT from the folder's poses
+    res = run("--runs-dir", tmp_path / "runs", "register", s0, s5, "--gt", "auto", code=None)
     assert res.exit_code in (0, 3), res.output
     (folder,) = list((tmp_path / "runs").glob("*_register"))
     data = json.loads((folder / "result.json").read_text())
