@@ -340,9 +340,17 @@ def _axes_traces(T: np.ndarray, length: float, who: str, group: str) -> list:
 
 
 def _correspondence_traces(
-    src_anchors: np.ndarray, tgt_anchors: np.ndarray, inlier_mask: np.ndarray | None
+    src_anchors: np.ndarray,
+    tgt_anchors: np.ndarray,
+    inlier_mask: np.ndarray | None,
+    assoc: np.ndarray,
 ) -> list:
     import plotly.graph_objects as go
+
+    labels = np.array(
+        [f"association {k}: source #{i} ↔ target #{j}" for k, (i, j) in enumerate(assoc)],
+        dtype=object,
+    )
 
     traces = []
     if inlier_mask is None:
@@ -363,7 +371,8 @@ def _correspondence_traces(
                 line={"color": color, "width": 5},
                 name=f"{name} ({int(sel.sum())})",
                 legendgroup=name,
-                hoverinfo="name",
+                text=np.repeat(labels[sel], 3).tolist(),
+                hoverinfo="text",
             )
         )
     return traces
@@ -477,7 +486,7 @@ def match_figure(
         traces += _axes_traces(Tp, axis_length, "source", "source")
         if len(assoc):
             traces += _correspondence_traces(
-                placed.anchors[assoc[:, 0]], target_landmarks.anchors[assoc[:, 1]], mask
+                placed.anchors[assoc[:, 0]], target_landmarks.anchors[assoc[:, 1]], mask, assoc
             )
         add(traces, p)
 

@@ -119,6 +119,7 @@ def test_figure_states_and_correspondences(scene):
     # after alignment by the true transform the inlier lines have zero length ...
     assert np.linalg.norm(seg[:, 0] - seg[:, 1], axis=1).max() < 1e-6
     assert by_state[0]["outliers"].name == "outliers (1)"
+    assert by_state[0]["outliers"].text[0] == "association 3: source #3 ↔ target #5"
     # ... and before alignment they span the 14 m / 180 deg offset
     seg_raw = np.c_[by_state[1]["inliers"].x, by_state[1]["inliers"].y, by_state[1]["inliers"].z]
     seg_raw = seg_raw.reshape(-1, 3, 3)[:, :2]
