@@ -53,6 +53,11 @@ class LandmarkExtractorConfig(BaseModel):
     min_points: int = Field(
         50, ge=1, description="Fewer valid points than this gives an empty set with a warning."
     )
+    min_extent: float = Field(
+        1e-3,
+        gt=0,
+        description="A cloud spanning less than this gives no landmarks (wrong units?) [m].",
+    )
     max_points_per_landmark: int = Field(
         256, ge=0, description="Support points stored per landmark (even stride); 0 stores none."
     )
@@ -170,9 +175,9 @@ class LandmarkExtractor:
             return LandmarkSet.empty()
         sample = P[:: max(1, P.shape[0] // 4096)]  # the extent test needs no precision
         extent = max(float(np.ptp(sample[:, j])) for j in range(3))
-        if extent < 1e-3:
+        if extent < cfg.min_extent:
             warnings.warn(
-                "the cloud spans less than 1 mm; no landmarks (wrong units?)",
+                f"the cloud spans less than min_extent={cfg.min_extent} m; no landmarks (wrong units?)",
                 RuntimeWarning,
                 stacklevel=2,
             )

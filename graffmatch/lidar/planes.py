@@ -129,7 +129,7 @@ def detect_patches(points: Array, cfg: PlaneConfig) -> NDArray[np.int64]:
     """
     m = points.shape[0]
     labels = np.full(m, -1, dtype=np.int64)
-    if m < max(cfg.min_num_points, cfg.patch_knn, 10):
+    if m < max(cfg.min_num_points, cfg.patch_knn, cfg.normal_knn, cfg.min_support):
         return labels
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(cfg.normal_knn))

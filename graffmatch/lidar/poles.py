@@ -65,6 +65,9 @@ class PoleConfig(BaseModel):
     max_footprint_cells: int = Field(
         12, ge=1, description="A pole's connected component covers at most this many xy cells."
     )
+    max_grid_cells: int = Field(
+        64_000_000, gt=0, description="Refuse occupancy grids larger than this (huge extents)."
+    )
     min_cell_points: int = Field(
         2, ge=1, description="Cells with fewer band points are empty (suppresses isolated noise)."
     )
@@ -179,7 +182,7 @@ def poles_geometric(
     lo = xy.min(axis=0)
     ij = np.floor((xy - lo) / cfg.cell_size).astype(np.int64)
     shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
-    if shape[0] * shape[1] > 64_000_000:
+    if shape[0] * shape[1] > cfg.max_grid_cells:
         raise InvalidInputError(
             f"pole grid of {shape[0]} x {shape[1]} cells is too large; crop the cloud (max_range)"
         )
