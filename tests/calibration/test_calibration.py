@@ -216,3 +216,39 @@ def test_demo_report():
     assert rep["T_depth_camera"] and np.allclose(np.array(rep["T_true"])[3], [0, 0, 0, 1])
     with pytest.raises(GraffMatchError):
         run_calibration_demo("lidar-camera")  # type: ignore[arg-type]
+
+
+# ---- real scans: no boards, so the honest outcome is "accurate or flagged" ------------------
+def _balm_pose(lines: list[str], i: int) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :] = np.array(lines[i].split(), float).reshape(3, 4)
+    U, _, Vt = np.linalg.svd(T[:3, :3])  # poses.txt is rounded: re-orthonormalise
+    T[:3, :3] = U @ Vt
+    return T
+
+
+@pytest.mark.parametrize("pair", [(20, 21)])
+def test_real_scans_accurate_or_flagged(shared_data, pair):
+    """BALM courtyard scans (real 360° LiDAR, walls and ground, no boards) as the two
+    'sensors': all planes kept, a wrong extrinsic must never be reported as valid."""
+    from graffmatch.calibration import LidarLidarConfig
+    from graffmatch.lidar.io import read_bin
+
+    root = shared_data / "balm_courtyard"
+    if not root.is_dir():
+        pytest.skip(f"{root} not present")
+    lines = (root / "poses.txt").read_text().splitlines()
+    i, j = pair
+    a = read_bin(root / "velodyne" / f"{i:06d}.bin")[:, :3]
+    b = read_bin(root / "velodyne" / f"{j:06d}.bin")[:, :3]
+    T_true = invert(_balm_pose(lines, j)) @ _balm_pose(lines, i)
+    cfg = LidarLidarConfig()
+    cfg.extraction.max_side = 1e9  # walls and ground too: there are no boards
+    cfg.extraction.max_range = 30.0
+    res = calibrate_lidar_lidar(a, b, cfg)
+    assert res.n_planes_source >= 10 and res.n_planes_target >= 10
+    rot, trans = transform_errors(res.T_b_a, T_true)
+    if res.valid:  # the reference poses are good to ~0.3 deg / 8 cm
+        assert rot < 1.5 and trans < 0.15, (rot, trans)
+    else:
+        assert res.message != "ok"
