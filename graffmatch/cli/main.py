@@ -958,7 +958,8 @@ def benchmark(
 ) -> None:
     """Run the paper's experiments (every method on every pair) in parallel; resumable.
 
-    Rerun with the same -o to continue a killed run; then 'graffmatch report <folder>'.
+    Writes <out>/results (one record per pair and method), <out>/report and the config. Rerun
+    with the same -o to continue a killed run; 'graffmatch report <out>' rebuilds the report.
     """
     from graffmatch.evaluation.benchmark import run_benchmark
 
@@ -985,7 +986,10 @@ def benchmark(
 )
 @cli_errors
 def report(
-    results: Annotated[Path, typer.Argument(help="Folder written by 'graffmatch benchmark'.")],
+    results: Annotated[
+        Path,
+        typer.Argument(help="Folder written by 'graffmatch benchmark' (or its results/)."),
+    ],
     output: Annotated[
         Path | None,
         typer.Option("--output", "-o", help="Report folder; default <results>/report."),
@@ -996,6 +1000,10 @@ def report(
 
     if not results.is_dir():
         raise MalformedFileError(f"{results}: results folder not found")
+    if (results / "benchmark.json").is_file() and (results / "results").is_dir():
+        # a 'graffmatch benchmark' output folder: its records live in results/
+        output = output or results / "report"
+        results = results / "results"
     with err.status("writing the report ...") if not STATE.quiet else _null():
         folder = make_report(results, output)
     info(f"report -> {folder}")

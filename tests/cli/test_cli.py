@@ -334,6 +334,12 @@ def test_build_dataset_benchmark_and_report(kitti, tmp_path):
         assert (tmp_path / "bench" / "report" / "table1.md").is_file()
         run("report", tmp_path / "bench" / "results", "-o", tmp_path / "rep")
         assert "GraffMatch" in (tmp_path / "rep" / "table1.md").read_text()
+        # the benchmark folder itself is accepted too; the report goes to <folder>/report
+        (tmp_path / "bench" / "report" / "table1.md").unlink()
+        run("report", tmp_path / "bench")
+        assert (tmp_path / "bench" / "report" / "table1.md").read_text() == (
+            tmp_path / "rep" / "table1.md"
+        ).read_text()
     finally:
         SUITES.pop("cli-tiny-kitti", None)
 
