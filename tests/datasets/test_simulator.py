@@ -18,6 +18,7 @@ from graffmatch.datasets.simulator import (
     SUITES,
     build_world,
     camera_to_lidar_poses,
+    extraction_accuracy,
     get_profile,
     gt_landmarks_in_scan,
     lidar_to_camera_poses,
@@ -358,6 +359,30 @@ def test_scan_pair_for_the_demo():
     for k, g in enumerate(vb.attributes["gt_id"]):
         if int(g) in gid_a:
             assert np.allclose(vb_in_a.anchors[k], va.anchors[gid_a[int(g)]], atol=1e-6)
+
+
+def test_extraction_accuracy_scores_a_front_end(worlds, scans):
+    w = worlds["suburban"]
+    T, pts, _, lm = scans["suburban"]
+    gt = gt_landmarks_in_scan(w, lm, T, min_points=40)
+    # a "front end" that fits every GT landmark's own points recovers all of them, accurately
+    fits = [
+        fit_landmark(pts[lm == int(g), :3], int(k))[0]
+        for g, k in zip(gt.attributes["gt_id"], gt.types, strict=True)
+    ]
+    perfect = LandmarkSet.from_landmarks(fits)
+    acc = extraction_accuracy(perfect, gt)
+    for kind in ("lines", "planes"):
+        assert acc[kind]["recovered"] == 1.0 and acc[kind]["precision"] == 1.0
+        assert acc[kind]["angle_deg"]["p90"] < 5.0
+    assert acc["planes"]["anchor_m"]["p90"] < 0.03
+    assert acc["lines"]["anchor_m"]["p90"] < 0.35  # surface centroid is ~ a radius off the axis
+    # moving everything 2 m sideways and tilting it loses the matches
+    from graffmatch.geometry.transforms import make_transform, rot_x
+
+    moved = perfect.transform(make_transform(rot_x(np.radians(20)), [0.0, 2.0, 0.0]))
+    bad = extraction_accuracy(moved, gt)
+    assert bad["lines"]["recovered"] < 0.2 and bad["planes"]["recovered"] < 0.5
 
 
 def test_suites_are_three_distinct_named_datasets():

@@ -9,6 +9,7 @@ Quick use::
 See docs/simulator.md for the world and sensor models.
 """
 
+from graffmatch.datasets.simulator.scoring import extraction_accuracy
 from graffmatch.datasets.simulator.sensor import (
     PROFILES,
     SensorProfile,
@@ -67,6 +68,7 @@ __all__ = [
     "WorldConfig",
     "build_world",
     "camera_to_lidar_poses",
+    "extraction_accuracy",
     "get_profile",
     "gt_landmarks_in_scan",
     "lidar_to_camera_poses",
