@@ -222,8 +222,8 @@ def test_config_rejects_unknown_and_bad_values() -> None:
     seed=st.integers(0, 2**16),
 )
 def test_semantic_pole_fit_property(tilt, azimuth, radius, x, y, seed) -> None:
-    """Any labelled, tilted (<= 10 deg) pole is recovered: axis within 1 deg, anchor on the
-    axis within 5 cm, radius within 30%."""
+    """Any labelled, tilted (<= 10 deg) pole is recovered: axis within 1 deg (or 5 sigma of the
+    sampling noise for thick poles), anchor on the axis within 5 cm, radius within 30%."""
     rng = np.random.default_rng(seed)
     t, a = np.radians(tilt), np.radians(azimuth)
     d = np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)])
@@ -243,5 +243,8 @@ def test_semantic_pole_fit_property(tilt, azimuth, radius, x, y, seed) -> None:
     assert ls.counts()["lines"] == 1
     q = ls.anchors[0] - base
     assert np.linalg.norm(q - (q @ d) * d) < POS_TOL_M
-    assert _angle_deg(ls.directions[0], d) < ANGLE_TOL_DEG
+    # PCA tilt from sampling a thick cylinder has std ~ (r/sqrt 2) / (L/sqrt 12) / sqrt(n)
+    # (0.34 deg for r = 0.3 m, L = 5 m, n = 600): allow 5 sigma when that exceeds 1 deg.
+    sampling_deg = np.degrees(radius / np.sqrt(2) / (5.0 / np.sqrt(12)) / np.sqrt(n))
+    assert _angle_deg(ls.directions[0], d) < max(ANGLE_TOL_DEG, 5 * sampling_deg)
     assert abs(ls.attributes["radius"][0] - radius) < 0.3 * radius + 0.01
