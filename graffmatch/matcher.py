@@ -41,7 +41,13 @@ class GraffMatchConfig(BaseModel):
         default_factory=lambda: ["point", "line", "plane"],
         description="landmark types used (e.g. ['line'] for the line-only variant)",
     )
-    solver: ClipperConfig = Field(default_factory=ClipperConfig)
+    solver: ClipperConfig = Field(
+        default_factory=lambda: ClipperConfig(greedy_starts=64),
+        description=(
+            "CLIPPER settings; GraffMatch also lets 64 greedy cliques compete on the same "
+            "densest-clique objective (greedy_starts=0 for CLIPPER alone)"
+        ),
+    )
     kappa_max: float = Field(1e3, gt=1, description="condition number above which the estimate is degenerate")
     min_associations: int = Field(3, ge=1, description="fewest selected associations for a valid result")
     weighted_registration: bool = Field(

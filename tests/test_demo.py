@@ -10,3 +10,9 @@ def test_demo_landmarks():
     assert rep.passed, rep
     assert rep.rotation_error_deg < MAX_ROTATION_ERROR_DEG
     assert rep.translation_error_m < MAX_TRANSLATION_ERROR_M
+
+
+def test_demo_lidar_default():
+    rep = run_demo(seed=0)
+    assert rep.mode == "lidar" and rep.passed, rep
+    assert rep.n_correct >= 0.9 * rep.n_associations
