@@ -105,8 +105,8 @@ def subsample_groups(
     """
     lab = np.asarray(labels).astype(np.int64)
     sel = np.asarray(selected, dtype=np.int64)
-    if sel.size == 0:
-        return np.zeros(0, np.int64), np.zeros(1, np.int64)
+    if sel.size == 0 or cap <= 0:
+        return np.zeros(0, np.int64), np.zeros(sel.size + 1, np.int64)
     rank = np.full(max(int(lab.max(initial=-1)), int(sel.max())) + 1, -1, dtype=np.int64)
     rank[sel] = np.arange(sel.size)
     valid = lab >= 0
@@ -122,7 +122,6 @@ def subsample_groups(
     take = np.minimum(n_of, cap)
     # keep position p when floor(p * take / n) increases: an even stride of `take` samples
     keep = (pos * take) // np.maximum(n_of, 1) != ((pos - 1) * take) // np.maximum(n_of, 1)
-    keep |= pos == 0
     out = idx[keep]
     kept_counts = np.bincount(r[keep], minlength=sel.size)
     return out, np.concatenate([[0], np.cumsum(kept_counts)]).astype(np.int64)

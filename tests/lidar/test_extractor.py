@@ -248,3 +248,11 @@ def test_semantic_pole_fit_property(tilt, azimuth, radius, x, y, seed) -> None:
     sampling_deg = np.degrees(radius / np.sqrt(2) / (5.0 / np.sqrt(12)) / np.sqrt(n))
     assert _angle_deg(ls.directions[0], d) < max(ANGLE_TOL_DEG, 5 * sampling_deg)
     assert abs(ls.attributes["radius"][0] - radius) < 0.3 * radius + 0.01
+
+
+def test_support_point_cap_zero_and_small(scene) -> None:
+    for cap in (0, 5):
+        cfg = LandmarkExtractorConfig(max_points_per_landmark=cap)
+        ls = LandmarkExtractor(cfg).extract(scene.points)
+        counts = np.diff(ls.point_offsets)
+        assert len(ls) == 10 and np.all(counts == cap)
