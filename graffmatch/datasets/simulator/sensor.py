@@ -3,9 +3,9 @@
 Each scan casts one ray per (beam, column) from the sensor origin; a ray returns the first
 triangle hit. Range noise is Gaussian along the ray, so a returned point keeps the exact
 elevation of its beam (which is what real spinning LiDARs do to first order). Rays drop out at
-random, at grazing incidence and beyond the maximum range. Intensity is a Lambertian-ish
-reflectivity model: a per-class albedo times the cosine of the incidence angle, fading with
-range. Motion distortion within a sweep is not modelled: every scan is taken at one pose.
+random, at grazing incidence, beyond the maximum range, and increasingly beyond half of it
+for dark or oblique surfaces (weak echoes). Intensity is a Lambertian-ish reflectivity model:
+a per-class albedo times the cosine of the incidence angle, fading with range. Motion distortion within a sweep is not modelled: every scan is taken at one pose.
 """
 
 from __future__ import annotations
@@ -140,6 +140,10 @@ for _cls, _alb in {
     _ALBEDO[_cls] = _alb
 
 
+#: Scales the echo so that mean intensities resemble KITTI's HDL-64E (about 0.3).
+_INTENSITY_GAIN = np.float32(2.0)
+
+
 def _triangle_albedo(world: W.World) -> NDArray[np.float32]:
     """Per-triangle albedo: the class albedo varied +-15% per object instance (cached)."""
     cached = world.__dict__.get("_albedo")
@@ -186,13 +190,18 @@ def render_scan(
     idx = np.flatnonzero(hit)
     nT = normals[idx].T
     cos_inc = np.abs(nT[0] * rays[idx, 3] + nT[1] * rays[idx, 4] + nT[2] * rays[idx, 5])
-    keep = (cos_inc >= prof.grazing_cos) & (rng.random(len(idx)) >= prof.dropout_prob)
-    idx, cos_inc = idx[keep], cos_inc[keep]
+    # the echo weakens with range and with dark, oblique surfaces: beyond half the maximum
+    # range, returns fade out (quadratically) unless the surface is bright and square-on
+    echo = _triangle_albedo(world)[prim[idx]] * (0.3 + 0.7 * cos_inc)
+    far = np.clip((t_hit[idx] - 0.5 * prof.max_range) / (0.5 * prof.max_range), 0.0, 1.0)
+    p_drop = prof.dropout_prob + far**2 * (1.0 - np.minimum(echo, 1.0))
+    keep = (cos_inc >= prof.grazing_cos) & (rng.random(len(idx)) >= p_drop)
+    idx, echo = idx[keep], echo[keep]
     r = t_hit[idx] + rng.normal(0.0, prof.range_noise_std, len(idx)).astype(np.float32)
     tri = prim[idx]
     cls = world.tri_class[tri]
     inst = world.tri_instance[tri]
-    inten = _triangle_albedo(world)[tri] * (0.3 + 0.7 * cos_inc) * (1.0 - 0.4 * r / prof.max_range)
+    inten = _INTENSITY_GAIN * echo * (1.0 - 0.4 * r / prof.max_range)
     inten = inten + rng.normal(0.0, prof.intensity_noise_std, len(idx)).astype(np.float32)
     pts = np.empty((len(idx), 4), np.float32)
     dT = dT[:, idx]
