@@ -992,20 +992,42 @@ def report(
     ],
     output: Annotated[
         Path | None,
-        typer.Option("--output", "-o", help="Report folder; default <results>/report."),
+        typer.Option("--output", "-o", help="Report folder; default <benchmark>/report."),
     ] = None,
+    views: Annotated[
+        int,
+        typer.Option(
+            min=0,
+            help="Interactive 3D views (and PNGs) of this many sample pairs per suite and case, "
+            "linked from summary.md; 0 for none.",
+        ),
+    ] = 1,
 ) -> None:
-    """Turn benchmark results into tables, figures and a markdown summary."""
+    """Turn benchmark results into tables, figures, sample 3D views and a markdown summary."""
+    from graffmatch.cli.report_views import benchmark_folder_of, write_report_views
     from graffmatch.evaluation.report import make_report
 
     if not results.is_dir():
         raise MalformedFileError(f"{results}: results folder not found")
-    if (results / "benchmark.json").is_file() and (results / "results").is_dir():
+    bench = benchmark_folder_of(results)
+    if bench is not None and (results / "results").is_dir():
         # a 'graffmatch benchmark' output folder: its records live in results/
         output = output or results / "report"
         results = results / "results"
     with err.status("writing the report ...") if not STATE.quiet else _null():
-        folder = make_report(results, output)
+        folder = Path(make_report(results, output))
+    if views and bench is not None:
+        with make_progress() as progress:
+            task = progress.add_task("sample views", total=None)
+            entries = write_report_views(
+                bench,
+                folder,
+                per_case=views,
+                matcher_config=STATE.settings.matcher,
+                max_points=min(STATE.settings.view.max_points, 20_000),
+                on_pair=lambda name: progress.update(task, description=f"view {name}"),
+            )
+        info(f"{len(entries)} sample view(s) -> {folder / 'views'}")
     info(f"report -> {folder}")
 
 

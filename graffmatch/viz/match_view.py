@@ -550,6 +550,7 @@ def write_match_view(
     info: Mapping[str, object] | None = None,
     max_points: int = 25_000,
     initial: str = "after",
+    plotlyjs: str = "embed",
 ) -> Path:
     """Write the interactive match view as ONE self-contained HTML file and return its path.
 
@@ -558,7 +559,11 @@ def write_match_view(
     correspondences green/red when the ground truth is known. Points are (N, 3+) arrays in each
     scan's own frame [m]; at most ``max_points`` of each are drawn. ``initial`` picks the
     state shown first: "after" (aligned), "raw" (before, own frames) or "side" (side by side).
+    ``plotlyjs="directory"`` writes plotly.js once as ``plotly.min.js`` beside the page and
+    references it (still offline; for report folders with many views), instead of embedding it.
     """
+    if plotlyjs not in ("embed", "directory"):
+        raise InvalidInputError(f"plotlyjs must be 'embed' or 'directory', got {plotlyjs!r}")
     fig = match_figure(
         source_landmarks,
         target_landmarks,
@@ -574,8 +579,14 @@ def write_match_view(
     )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if plotlyjs == "directory":
+        js = path.parent / "plotly.min.js"
+        if not js.is_file():
+            from plotly.offline import get_plotlyjs
+
+            js.write_text(get_plotlyjs(), encoding="utf-8")
     html = fig.to_html(
-        include_plotlyjs=True,
+        include_plotlyjs=True if plotlyjs == "embed" else "plotly.min.js",
         full_html=True,
         config={"displaylogo": False, "responsive": True},
         default_width="100%",

@@ -336,10 +336,18 @@ def test_build_dataset_benchmark_and_report(kitti, tmp_path):
         assert "GraffMatch" in (tmp_path / "rep" / "table1.md").read_text()
         # the benchmark folder itself is accepted too; the report goes to <folder>/report
         (tmp_path / "bench" / "report" / "table1.md").unlink()
-        run("report", tmp_path / "bench")
-        assert (tmp_path / "bench" / "report" / "table1.md").read_text() == (
-            tmp_path / "rep" / "table1.md"
-        ).read_text()
+        run("report", tmp_path / "bench", "--views", "1")
+        rep = tmp_path / "bench" / "report"
+        assert (rep / "table1.md").read_text() == (tmp_path / "rep" / "table1.md").read_text()
+        # ... with sample 3D views sharing one offline plotly.js, linked from the summary
+        index = json.loads((rep / "views" / "index.json").read_text())
+        assert len(index) == sum(1 for c in summary["cases"].values() if c.get("pairs"))
+        for e in index:
+            html = (rep / e["html"]).read_text()
+            assert 'src="plotly.min.js"' in html and "data-graffmatch-rendered" in html
+            assert (rep / e["png"]).read_bytes()[:4] == b"\x89PNG"
+            assert e["html"] in (rep / "summary.md").read_text()
+        assert (rep / "views" / "plotly.min.js").stat().st_size > 1_000_000
     finally:
         SUITES.pop("cli-tiny-kitti", None)
 
