@@ -25,7 +25,7 @@ from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.lidar._stats import subsample_groups
 from graffmatch.lidar.ground import GroundConfig, segment_ground
 from graffmatch.lidar.io import semantic_class
-from graffmatch.lidar.planes import PlaneConfig, extract_planes
+from graffmatch.lidar.planes import PlaneConfig, drop_ground_duplicates, extract_planes
 from graffmatch.lidar.poles import PoleConfig, PoleResult, poles_geometric, poles_semantic
 
 Array = NDArray[np.float64]
@@ -213,6 +213,8 @@ class LandmarkExtractor:
             if cfg.planes.max_range is not None:
                 keep &= P[:, 0] ** 2 + P[:, 1] ** 2 <= cfg.planes.max_range**2
             planes = extract_planes(P[keep], cfg.planes)
+            if ground is not None and ground.normal is not None and ground.centroid is not None:
+                planes = drop_ground_duplicates(planes, ground.normal, ground.centroid, cfg.planes)
         timings["planes"] = time.perf_counter() - t
         cpu["planes"] = time.process_time() - c
 

@@ -64,6 +64,11 @@ class GroundConfig(BaseModel):
         description="Reject a ground plane whose normal is further from +z [deg].",
     )
     min_support: int = Field(200, ge=3, description="Minimum number of ground-plane inliers.")
+    relabel_with_plane: bool = Field(
+        True,
+        description="Within landmark_radius, also label as ground every point within "
+        "inlier_threshold of the fitted ground plane (repairs cells whose minimum is an outlier).",
+    )
     fit_max_points: int = Field(
         5000,
         ge=3,
@@ -164,4 +169,10 @@ def segment_ground(points: Array, config: GroundConfig) -> GroundResult:
     P = points[sup]
     c = P.mean(axis=0)
     rms = float(np.sqrt(np.mean(((P - c) @ normal) ** 2)))
+    if config.relabel_with_plane:
+        # Points below the road (multipath) lower a cell's minimum and leave real road points
+        # "above ground"; near the sensor, the fitted plane is the better ground model.
+        r2 = points[:, 0] ** 2 + points[:, 1] ** 2
+        on_plane = np.abs((points - c) @ normal) <= config.inlier_threshold
+        is_ground = is_ground | (on_plane & (r2 <= config.landmark_radius**2))
     return GroundResult(is_ground, height, sup, normal, c, rms)

@@ -84,6 +84,12 @@ class PlaneConfig(BaseModel):
     merge_max_gap: float = Field(
         2.0, ge=0, description="... and whose supports come within this distance of each other [m]."
     )
+    ground_duplicate_offset: float = Field(
+        0.3,
+        ge=0,
+        description="Drop planes parallel to the ground landmark (within merge_angle_deg) whose "
+        "offset differs by less than this: road pieces left by the ground step, kerbs [m].",
+    )
     min_support: int = Field(30, ge=3, description="Minimum support points of a final plane.")
     min_area: float = Field(
         10.0, ge=0, description="Minimum area (OBB sides product) of a final plane [m^2]."
@@ -230,6 +236,31 @@ def merge_and_fit(
         st.centroids[keep], normals[keep], box[keep], area[keep], st.counts[keep], rms[keep],
         points, final.astype(np.int64), n_patches,
     )  # fmt: skip
+
+
+def select_planes(res: PlaneResult, keep: NDArray[np.bool_]) -> PlaneResult:
+    """The subset ``keep`` of the planes, with point labels renumbered."""
+    idx = np.flatnonzero(keep)
+    remap = np.full(len(res) + 1, -1, dtype=np.int64)  # last slot maps label -1
+    remap[idx] = np.arange(idx.size)
+    labels = remap[res.labels]  # -1 indexes the last slot -> -1
+    return PlaneResult(
+        res.anchors[idx], res.normals[idx], res.box[idx], res.area[idx], res.support[idx],
+        res.rms[idx], res.points, labels, res.n_patches,
+    )  # fmt: skip
+
+
+def drop_ground_duplicates(
+    res: PlaneResult, ground_normal: Array, ground_point: Array, cfg: PlaneConfig
+) -> PlaneResult:
+    """Remove planes parallel to the ground landmark and within ``ground_duplicate_offset`` of
+    it: a second, near-identical "ground" would be an ambiguous landmark for matching."""
+    if len(res) == 0:
+        return res
+    cos = np.abs(res.normals @ ground_normal)
+    off = np.abs((res.anchors - ground_point) @ ground_normal)
+    dup = (cos >= np.cos(np.radians(cfg.merge_angle_deg))) & (off <= cfg.ground_duplicate_offset)
+    return select_planes(res, ~dup) if dup.any() else res
 
 
 def extract_planes(points: Array, cfg: PlaneConfig, downsampled: bool = False) -> PlaneResult:
