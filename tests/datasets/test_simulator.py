@@ -97,6 +97,44 @@ def test_styles_have_their_character(worlds):
         assert height.min() >= 2.0 and height.max() <= 11.0
 
 
+@settings(max_examples=6, deadline=None)
+@given(st.integers(0, 10_000), st.sampled_from(["downtown", "suburban", "open-road"]))
+def test_world_layout_is_physically_consistent(seed, style):
+    w = build_world(style, seed)
+    L = w.landmarks
+    cat, inst = L.attributes["category"], L.attributes["instance"]
+    # building footprints from their four GT facades; no two buildings overlap
+    fac = np.flatnonzero(cat == CATEGORIES["facade"])
+    boxes = []
+    for b in np.unique(inst[fac]):
+        faces = fac[inst[fac] == b]
+        assert len(faces) == 4
+        a = L.anchors[faces]
+        boxes.append((a[:, 0].min(), a[:, 0].max(), a[:, 1].min(), a[:, 1].max()))
+    B = np.array(boxes)
+    ov = (
+        (B[:, None, 0] < B[None, :, 1] - 1e-6)
+        & (B[None, :, 0] < B[:, None, 1] - 1e-6)
+        & (B[:, None, 2] < B[None, :, 3] - 1e-6)
+        & (B[None, :, 2] < B[:, None, 3] - 1e-6)
+    )
+    np.fill_diagonal(ov, False)
+    assert not ov.any()
+    # poles stand on the (raised) ground, outside every building and off the roadway
+    poles = np.flatnonzero(L.types == 1)
+    a = L.anchors[poles]
+    base = a[:, 2] - L.attributes["extent"][poles] / 2
+    assert np.allclose(base, w.ground_height(a[:, 0], a[:, 1]) + 0.15, atol=1e-9)
+    inside = (
+        (a[:, None, 0] > B[None, :, 0]) & (a[:, None, 0] < B[None, :, 1])
+        & (a[:, None, 1] > B[None, :, 2]) & (a[:, None, 1] < B[None, :, 3])
+    )  # fmt: skip
+    assert not inside.any()
+    dx = np.abs(a[:, None, 0] - w.street_x[None]).min(axis=1)
+    dy = np.abs(a[:, None, 1] - w.street_y[None]).min(axis=1)
+    assert np.all(np.maximum(np.minimum(dx, dy), 0) >= w.road_half_width - 1e-9)
+
+
 def test_ground_is_gently_sloped_and_planar_patches(worlds):
     w = worlds["suburban"]
     g = w.ground_gradient(np.linspace(-150, 150, 301), np.linspace(-150, 150, 301))

@@ -10,9 +10,8 @@ plane), while the slopes still vary gently from street to street.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
-from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -196,7 +195,6 @@ _PRESETS["downtown"] = dict(
     clutter_rate=4.0,
 )
 
-WorldStyle = Literal["downtown", "suburban", "open-road"]
 STYLES: tuple[str, ...] = tuple(_PRESETS)
 
 
@@ -386,7 +384,6 @@ class World:
     heights_x: NDArray[np.float64]
     knots_y: NDArray[np.float64]
     heights_y: NDArray[np.float64]
-    _scene: object = field(default=None, repr=False)
 
     @property
     def road_half_width(self) -> float:
