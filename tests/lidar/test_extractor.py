@@ -256,3 +256,23 @@ def test_support_point_cap_zero_and_small(scene) -> None:
         ls = LandmarkExtractor(cfg).extract(scene.points)
         counts = np.diff(ls.point_offsets)
         assert len(ls) == 10 and np.all(counts == cap)
+
+
+def test_ground_outliers_and_kerb_do_not_duplicate_ground(scene) -> None:
+    """Multipath points below the road and a 12 cm sidewalk must not become extra horizontal
+    planes next to the ground landmark (they would be ambiguous landmarks)."""
+    rng = np.random.default_rng(7)
+    below = np.column_stack([rng.uniform(-25, 25, (300, 2)), np.full(300, -2.9)])
+    kerb = np.column_stack(
+        [rng.uniform(4, 14, 4000), rng.uniform(-8, -5, 4000), np.full(4000, -1.58)]
+    )
+    extra = np.concatenate([below, kerb])
+    pts = np.concatenate([scene.points[:, :3], extra]).astype(np.float32)
+    ls = LandmarkExtractor().extract(pts)
+    planes = ls.of_type(LandmarkType.PLANE)
+    horizontal = np.abs(planes.directions[:, 2]) > np.cos(np.radians(10))
+    assert horizontal.sum() == 1  # the ground landmark only
+    ground = planes[np.flatnonzero(horizontal)]
+    assert ground.attributes["is_ground"][0] == 1
+    assert abs(ground.hesse()[0, 3] + 1.7) < 0.05
+    assert ls.counts()["lines"] == len(scene.poles)
