@@ -152,8 +152,9 @@ def pole_segments(ls: LandmarkSet) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def plane_quads(ls: LandmarkSet) -> tuple[np.ndarray, np.ndarray]:
     """(indices, corners (n, 4, 3)) of a rectangle per plane landmark, in the set's frame.
 
-    The rectangle spans the support points in the plane's basis when they are present, else the
-    ``box`` sides (or a square of the ``extent`` area) centred on the anchor.
+    The rectangle is the minimum-area rectangle of the support points when they are present,
+    else the ``box`` sides (or a square of the ``extent`` area) centred on the anchor, the
+    larger side horizontal for non-horizontal planes.
     """
     idx = ls.indices_of_type(LandmarkType.PLANE)
     n = len(idx)
@@ -167,10 +168,18 @@ def plane_quads(ls: LandmarkSet) -> tuple[np.ndarray, np.ndarray]:
         if box.shape[1] >= 2:
             box = box[idx, :2]
             ok = np.all(np.isfinite(box) & (box > 0), axis=1)
-            half[ok] = box[ok] / 2
+            half[ok] = -np.sort(-box[ok], axis=1) / 2  # larger side first
     lo, hi = -half, half.copy()
+    # Without support points the box orientation is unknown: lay the larger side horizontally
+    # (facades, walls, boards are drawn upright); horizontal planes keep their basis.
+    normal = ls.directions[idx]
+    horiz = np.cross([0.0, 0.0, 1.0], normal)
+    hn = np.linalg.norm(horiz, axis=1)
+    upright = hn > 0.1
     u = ls.bases[idx, :, 0].copy()
     v = ls.bases[idx, :, 1].copy()
+    u[upright] = horiz[upright] / hn[upright, None]
+    v[upright] = np.cross(normal[upright], u[upright])
     a = ls.anchors[idx]
     has, owner, uv, first = _support_uv(ls, idx, 2)
     if np.any(has):
@@ -193,7 +202,7 @@ def plane_quads(ls: LandmarkSet) -> tuple[np.ndarray, np.ndarray]:
         ok = np.all(shi > slo, axis=1)
         pos = np.flatnonzero(has)[ok]
         cu, su = c[ok, None], s_[ok, None]
-        u0, v0 = u[pos].copy(), v[pos].copy()
+        u0, v0 = ls.bases[idx[pos], :, 0], ls.bases[idx[pos], :, 1]  # the basis of uv
         u[pos] = cu * u0 + su * v0
         v[pos] = -su * u0 + cu * v0
         lo[pos], hi[pos] = slo[ok], shi[ok]

@@ -66,6 +66,16 @@ def test_plane_quads_lie_on_the_planes_and_cover_the_support(scene):
     assert areas[:5] == pytest.approx(np.full(5, 48.0), rel=0.03)
 
 
+def test_plane_quads_without_points_stand_upright():
+    # a wall with normal +x: box 8 m x 3 m -> the 8 m side is horizontal, the 3 m side vertical
+    ls = LandmarkSet.from_arrays([2], [[1, 0, 0]], [[5, 0, 1.5]], {"box": np.array([[3.0, 8.0]])})
+    _, corners = plane_quads(ls)
+    c = corners[0]
+    np.testing.assert_allclose(np.ptp(c[:, 1]), 8.0)
+    np.testing.assert_allclose(np.ptp(c[:, 2]), 3.0)
+    np.testing.assert_allclose(c[:, 0], 5.0)
+
+
 def test_plane_quads_use_box_without_points():
     ls = LandmarkSet.from_arrays([2], [[0, 0, 1]], [[1, 2, 3]], {"box": np.array([[6.0, 2.0]])})
     _, corners = plane_quads(ls)
