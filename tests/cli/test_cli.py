@@ -284,6 +284,12 @@ def test_extract_folder(kitti, tmp_path):
 
 
 # ---- datasets, evaluation, calibration, demo ------------------------------------------------------
+def _labels_never(tmp_path: Path) -> Path:
+    cfg = tmp_path / "never.yaml"
+    cfg.write_text("input:\n  labels: never\n")
+    return cfg
+
+
 def test_simulate_tiny(tmp_path):
     out = tmp_path / "sim"
     run("simulate", out, "--scans", "2", "--sensor", "vlp16", "--style", "suburban")
@@ -292,6 +298,13 @@ def test_simulate_tiny(tmp_path):
     pts = np.fromfile(bins[0], np.float32).reshape(-1, 4)
     assert len(pts) > 1000
     assert len((out / "poses.txt").read_text().splitlines()) == 2
+    # the simulator's SemanticKITTI labels are found next to the scans: semantic pole mode
+    run("extract", out, "-o", tmp_path / "lm")
+    rows = json.loads((tmp_path / "lm" / "summary.json").read_text())["scans"]
+    assert [Path(r["labels"]).name for r in rows] == ["000000.label", "000001.label"]
+    run("--config", _labels_never(tmp_path), "extract", out, "-o", tmp_path / "lm2")
+    rows2 = json.loads((tmp_path / "lm2" / "summary.json").read_text())["scans"]
+    assert all(r["labels"] is None for r in rows2)
     res = run("simulate", out, "--scans", "2", "--sensor", "vlp16", code=1)  # not empty
     assert "overwrite" in res.stderr
     run("simulate", out, "--style", "nowhere", code=1)
