@@ -119,6 +119,10 @@ def main(
 # ----------------------------------------------------------------------------------------------
 # helpers shared by commands
 # ----------------------------------------------------------------------------------------------
+#: Tables print at most this many rows unless -v (the JSON files hold everything).
+MAX_TABLE_ROWS = 40
+
+
 def _fmt_ms(seconds: float) -> str:
     return f"{1e3 * seconds:.1f} ms"
 
@@ -313,7 +317,8 @@ def extract(
     table = Table(title=None, show_edge=False, header_style="bold")
     for col in ("scan", "points", "poles", "planes", "time", "file"):
         table.add_column(col, justify="left" if col in ("scan", "file") else "right")
-    for r in rows:
+    shown = rows if STATE.verbosity > 0 else rows[:MAX_TABLE_ROWS]
+    for r in shown:
         table.add_row(
             Path(r["scan"]).name,
             f"{r['n_points']:,}",
@@ -324,6 +329,8 @@ def extract(
         )
     if not STATE.quiet:
         out.print(table)
+        if len(shown) < len(rows):
+            out.print(f"... {len(rows) - len(shown)} more scan(s) in {summary_path} (-v: all)")
     tot = sum(r["seconds"] for r in rows)
     info(
         f"{len(rows)} scan(s): {sum(r['poles'] for r in rows)} poles, "
@@ -630,7 +637,8 @@ def _print_register(data, src, tgt, result_path, pose_written, view_written) -> 
             table.add_column("d_Graff (GT)", justify="right")
             table.add_column("inlier", justify="center")
         w = np.asarray(data["weights"], float)
-        for k, (i, j) in enumerate(assoc):
+        n_rows = len(assoc) if STATE.verbosity > 0 else min(len(assoc), MAX_TABLE_ROWS)
+        for k, (i, j) in enumerate(assoc[:n_rows]):
             row = [
                 str(k),
                 str(i),
@@ -644,6 +652,8 @@ def _print_register(data, src, tgt, result_path, pose_written, view_written) -> 
                 row += [f"{dk:.2f}°", "[green]✓[/green]" if ok else "[red]✗[/red]"]
             table.add_row(*row)
         out.print(table)
+        if n_rows < len(assoc):
+            out.print(f"... {len(assoc) - n_rows} more association(s) in the result JSON (-v: all)")
     if data["T_target_source"] is None:
         out.print("[bold]T_target_source[/bold]: none (no estimate)")
     else:
