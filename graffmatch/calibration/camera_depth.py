@@ -272,7 +272,9 @@ def depth_to_points(
 
 def _depth_extraction_default() -> PlaneExtractionConfig:
     cfg = PlaneExtractionConfig(max_range=10.0)
-    cfg.detector.voxel_size = 0.03  # a board at 5 m still keeps ~100 points
+    # Step 4 px and 2 cm voxels: a board at 5 m keeps ~130 points; measured on 32 seeds this
+    # finds every board, where steps 2–3 with 3 cm voxels missed some (sampling aliasing).
+    cfg.detector.voxel_size = 0.02
     return cfg
 
 
@@ -284,7 +286,9 @@ class CameraDepthConfig(BaseModel):
     detection: BoardDetectionConfig = Field(
         default_factory=BoardDetectionConfig, description="Chessboard detection in the RGB image."
     )
-    depth_step: int = Field(3, ge=1, description="Use every n-th depth pixel (speed).")
+    depth_step: int = Field(
+        4, ge=1, description="Detect planes on every n-th depth pixel (all pixels refine them)."
+    )
     max_depth: float = Field(10.0, gt=0, description="Ignore depth beyond this [m].")
     extraction: PlaneExtractionConfig = Field(
         default_factory=_depth_extraction_default, description="Plane extraction from depth points."
@@ -299,8 +303,9 @@ def extract_depth_planes(
 ) -> LandmarkSet:
     """Planes (depth-camera frame) of a depth image: back-project, then board-plane extraction."""
     cfg = config or CameraDepthConfig()
+    full = depth_to_points(depth, K_depth, 1, cfg.max_depth)
     P = depth_to_points(depth, K_depth, cfg.depth_step, cfg.max_depth)
-    return planes_from_points(P, cfg.extraction)
+    return planes_from_points(P, cfg.extraction, refine_points=full)
 
 
 def calibrate_camera_depth(

@@ -65,10 +65,48 @@ class PlaneExtractionConfig(BaseModel):
     max_side: float = Field(
         3.0, gt=0, description="Both in-plane box sides must be at most this long [m] (boards)."
     )
+    refine_iterations: int = Field(
+        2,
+        ge=0,
+        description="Refit each plane on the full-resolution points near it (the detector "
+        "works on voxel centroids); 0 keeps the detector's fit.",
+    )
+    refine_distance: float = Field(
+        0.03, gt=0, description="Refinement gate: max(this, 3 x RMS) from the plane [m]."
+    )
+
+
+def _refine(
+    S: Array, R: Array, iterations: int, gate_min: float
+) -> tuple[Array, Array, Array, Array, float]:
+    """PCA plane of ``S``, then refitted ``iterations`` times on the points of ``R`` within the
+    gate of the plane and inside its in-plane box (grown by the gate). Returns
+    (support, centroid, normal, in-plane axes (3, 2), rms)."""
+    for it in range(iterations + 1):
+        c = S.mean(axis=0)
+        _, sv, Vt = np.linalg.svd(S - c, full_matrices=False)
+        rms = float(sv[2] / np.sqrt(len(S)))
+        if it == iterations:
+            break
+        n, A = Vt[2], Vt[:2].T
+        uv = (S - c) @ A
+        gate = max(gate_min, 3.0 * rms)
+        lo, hi = uv.min(axis=0) - gate, uv.max(axis=0) + gate
+        Q = R - c
+        near = np.abs(Q @ n) <= gate
+        uvR = Q[near] @ A
+        inside = np.all((uvR >= lo) & (uvR <= hi), axis=1)
+        cand = R[near][inside]
+        if len(cand) < 10:
+            break
+        S = cand
+    return S, c, Vt[2], Vt[:2].T, rms
 
 
 def planes_from_points(
-    points: ArrayLike, config: PlaneExtractionConfig | None = None
+    points: ArrayLike,
+    config: PlaneExtractionConfig | None = None,
+    refine_points: ArrayLike | None = None,
 ) -> LandmarkSet:
     """Extract board planes from an (N, 3) cloud in the sensor frame [m].
 
@@ -76,6 +114,8 @@ def planes_from_points(
     sensor. Anchor = centre of the in-plane bounding box of the support (not the centroid:
     sampling density varies across a tilted board, the box centre does not), with ``support``,
     ``rms``, ``box`` and ``extent`` attributes and the support points attached.
+    ``refine_points``: the full-resolution cloud used to refit each plane (default: ``points``;
+    a depth image passes all its pixels while the detector runs on a subsample).
     """
     cfg = config or PlaneExtractionConfig()
     P = np.asarray(points, dtype=np.float64)
@@ -85,24 +125,35 @@ def planes_from_points(
     P = P[np.linalg.norm(P, axis=1) <= cfg.max_range]
     if len(P) < cfg.detector.min_support:
         raise InvalidInputError(f"only {len(P)} valid points; cannot extract planes")
+    if refine_points is None:
+        R = P
+    else:
+        R = np.asarray(refine_points, dtype=np.float64).reshape(-1, 3)
+        R = R[np.all(np.isfinite(R), axis=1)]
+        R = R[np.linalg.norm(R, axis=1) <= cfg.max_range]
     res = extract_planes(P, cfg.detector)
     pts, labels = res.points, res.labels
     order = np.argsort(labels, kind="stable")
     bounds = np.searchsorted(labels[order], np.arange(len(res) + 1))
-    anchors, normals, sides, chunks, keep = [], [], [], [], []
+    anchors, normals, sides, chunks, rmss, keep = [], [], [], [], [], []
     for i in range(len(res)):  # loop over planes (tens), vectorised over their points
         S = pts[order[bounds[i] : bounds[i + 1]]]
-        c = S.mean(axis=0)
-        _, _, Vt = np.linalg.svd(S - c, full_matrices=False)
-        uv = (S - c) @ Vt[:2].T
+        c0 = S.mean(axis=0)
+        _, _, Vt0 = np.linalg.svd(S - c0, full_matrices=False)
+        side0 = np.ptp((S - c0) @ Vt0[:2].T, axis=0)
+        if np.any(side0 < cfg.min_side) or np.any(side0 > cfg.max_side):
+            continue  # reject before refining: ground and walls are the bulk of the points
+        S, c, n, A, rms = _refine(S, R, cfg.refine_iterations, cfg.refine_distance)
+        uv = (S - c) @ A
         lo, hi = uv.min(axis=0), uv.max(axis=0)
         side = hi - lo
         if np.any(side < cfg.min_side) or np.any(side > cfg.max_side):
             continue
         keep.append(i)
-        anchors.append(c + Vt[:2].T @ ((lo + hi) / 2.0))
-        normals.append(res.normals[i])
+        anchors.append(c + A @ ((lo + hi) / 2.0))
+        normals.append(n if n @ c <= 0 else -n)  # towards the sensor
         sides.append(np.sort(side)[::-1])
+        rmss.append(rms)
         chunks.append(S.astype(np.float32))
     if not keep:
         return _empty_planes()
@@ -114,8 +165,8 @@ def planes_from_points(
         np.asarray(normals),
         np.asarray(anchors),
         {
-            "support": res.support[keep].astype(np.int64),
-            "rms": res.rms[keep],
+            "support": np.array([len(ch) for ch in chunks], dtype=np.int64),
+            "rms": np.asarray(rmss),
             "box": box,
             "extent": box[:, 0] * box[:, 1],
         },
