@@ -916,9 +916,15 @@ def build_dataset(
         for key in sorted(SUITES):
             out.print(f"{key:18s} {SUITES[key].description}")
         return
+    from graffmatch.cli.settings import dump_model
+    from graffmatch.evaluation.suites import suite_config
+
     summary = build_suite(name, output, quick=quick, progress=not STATE.quiet)
     folder = output / (f"{name}-quick" if quick else name)
-    write_config_next_to(folder)
+    # The suite's own rules (and their extractor config) made this data, not the CLI settings.
+    (folder / "config.yaml").write_text(
+        dump_model(suite_config(name, quick), f"loop-closure rules of suite {name}")
+    )
     info(_summary_line(summary, folder))
 
 
@@ -975,7 +981,7 @@ def benchmark(
 
     out_dir = output or run_dir(STATE.runs_dir, "benchmark")
     out_dir.mkdir(parents=True, exist_ok=True)
-    write_config_next_to(out_dir)
+    # run_benchmark writes the exact study configuration itself (results/config.json).
     res = run_benchmark(
         suites=list(suites or []) or None,
         out_dir=out_dir,

@@ -291,6 +291,13 @@ def dump_settings(settings: Settings) -> str:
     return "\n".join(lines) + "\n"
 
 
+def dump_model(model: BaseModel, header: str = "") -> str:
+    """Commented YAML of any pydantic config (e.g. a suite's LoopClosureConfig)."""
+    lines = [f"# {ln}" for ln in header.splitlines()]
+    _dump_model(model, 0, lines)
+    return "\n".join(lines) + "\n"
+
+
 def save_settings(settings: Settings, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

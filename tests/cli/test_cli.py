@@ -343,7 +343,9 @@ def test_build_dataset_benchmark_and_report(kitti, tmp_path):
             "--data-dir",
             tmp_path / "data",
         )
-        assert (tmp_path / "bench" / "config.yaml").is_file()
+        assert json.loads((tmp_path / "bench" / "results" / "config.json").read_text())
+        built = yaml.safe_load((tmp_path / "data" / "cli-tiny-kitti" / "config.yaml").read_text())
+        assert built["place_spacing"] == 0.8 and built["max_pairs"] == 2
         assert (tmp_path / "bench" / "report" / "table1.md").is_file()
         run("report", tmp_path / "bench" / "results", "-o", tmp_path / "rep")
         assert "GraffMatch" in (tmp_path / "rep" / "table1.md").read_text()
