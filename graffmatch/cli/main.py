@@ -173,7 +173,7 @@ def _load_input(path: Path, labels: Path | None, extractor_holder: list) -> Any:
     ex = extractor_holder[0]
     t0 = time.perf_counter()
     ls = ex.extract(pts, lab)
-    timings = dict(getattr(ex, "last_timings", {}) or {})
+    timings = dict(ex.last_timings)
     timings.setdefault("total", time.perf_counter() - t0)
     return LoadedInput(path, "scan", ls, pts, label_path, timings)
 
@@ -304,7 +304,7 @@ def extract(
                     "planes": c["planes"],
                     "seconds": dt,
                     "bytes": target.stat().st_size,
-                    "timings": dict(getattr(ex, "last_timings", {}) or {}),
+                    "timings": dict(ex.last_timings),
                 }
             )
             progress.advance(task)
@@ -460,7 +460,7 @@ def register(
         gt_info, inlier_mask = _ground_truth_report(
             src.landmarks, tgt.landmarks, assoc, T_est, T_gt
         )
-    valid = bool(getattr(result, "valid", True))
+    valid = bool(result.valid)
     data = {
         "format": "graffmatch-register-result",
         "version": 1,
@@ -477,16 +477,16 @@ def register(
         "T_target_source": T_est,
         "T_target_source_matcher": T_matcher,
         "associations": assoc,
-        "weights": np.asarray(getattr(result, "weights", np.zeros(0)), float),
-        "score": float(getattr(result, "score", float("nan"))),
-        "kappa": float(getattr(result, "kappa", float("nan"))),
-        "degenerate": bool(getattr(result, "degenerate", False)),
+        "weights": np.asarray(result.weights, float),
+        "score": float(result.score),
+        "kappa": float(result.kappa),
+        "degenerate": bool(result.degenerate),
         "valid": valid,
-        "message": str(getattr(result, "message", "")),
-        "n_putative": int(getattr(result, "n_putative", -1)),
-        "n_edges": int(getattr(result, "n_edges", -1)),
+        "message": str(result.message),
+        "n_putative": int(result.n_putative),
+        "n_edges": int(result.n_edges),
         "timings": {
-            "match": dict(getattr(result, "timings", {}) or {}),
+            "match": dict(result.timings),
             "extract_source": src.timings,
             "extract_target": tgt.timings,
         },
@@ -556,7 +556,7 @@ def _refine_icp(src, tgt, assoc: np.ndarray, T_init: np.ndarray, result) -> dict
     """
     from graffmatch.registration.icp import matched_support_points, refine_icp
 
-    keep = (getattr(result, "info", None) or {}).get("registration_inliers")
+    keep = result.info.get("registration_inliers")
     used = assoc if keep is None else assoc[np.asarray(keep)]
     if len(used) == 0:
         raise InvalidInputError("--refine icp: the matcher selected no associations to refine")
