@@ -181,10 +181,12 @@ def test_pca_fits_of_visible_gt_landmarks_recover_them(worlds, scans):
     T, pts, _, lm = scans["suburban"]
     vis = gt_landmarks_in_scan(w, lm, T, min_points=40)
     assert vis.counts()["lines"] >= 3 and vis.counts()["planes"] >= 10
-    checked = 0
+    checked = lines_checked = 0
     for k in range(len(vis)):
         gid = int(vis.attributes["gt_id"][k])
         sup = pts[lm == gid, :3]
+        if vis.types[k] == 1 and np.ptp(sup[:, 2]) < 1.5:
+            continue  # a pole seen by a few rings only: PCA has no axis to find
         fit, _ = fit_landmark(sup, int(vis.types[k]))
         B = fit.basis
         u = B[:, 0] if B.shape[1] == 1 else np.cross(B[:, 0], B[:, 1])
@@ -198,7 +200,8 @@ def test_pca_fits_of_visible_gt_landmarks_recover_them(worlds, scans):
             off -= (off @ vis.directions[k]) * vis.directions[k]
             assert np.linalg.norm(off) < 0.1 + vis.attributes["radius"][k]
         checked += 1
-    assert checked >= 13
+        lines_checked += int(vis.types[k] == 1)
+    assert checked >= 12 and lines_checked >= 2
 
 
 # ---- sensor -----------------------------------------------------------------------------------

@@ -654,6 +654,10 @@ class _Generator:
         along_x = side in ("-y", "+y")
         s0, s1 = (x0, x1) if along_x else (y0, y1)
         depth_room = ((y1 - y0) if along_x else (x1 - x0)) / 2 - 0.5
+        # keep the side setback at the lot corners too, so corner buildings leave the
+        # cross street's sidewalk/shoulder (and its poles) free
+        corner = max(1.0, cfg.setback[0])
+        s0, s1 = s0 + corner, s1 - corner
         pos = s0 + self.u((0.0, 3.0))
         while pos < s1 - 4.0:
             if self.rng.random() < cfg.frontage:
