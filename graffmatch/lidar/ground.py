@@ -151,9 +151,8 @@ def segment_ground(points: Array, config: GroundConfig) -> GroundResult:
     is_ground = height <= config.height_threshold
     if not config.emit_landmark:
         return GroundResult(is_ground, height, np.zeros(0, np.int64), None, None, np.nan)
-    near = np.flatnonzero(
-        is_ground & (np.hypot(points[:, 0], points[:, 1]) <= config.landmark_radius)
-    )
+    within = points[:, 0] ** 2 + points[:, 1] ** 2 <= config.landmark_radius**2
+    near = np.flatnonzero(is_ground & within)
     if near.size < config.min_support:
         return GroundResult(is_ground, height, np.zeros(0, np.int64), None, None, np.nan)
     stride = max(1, near.size // config.fit_max_points)
@@ -172,7 +171,8 @@ def segment_ground(points: Array, config: GroundConfig) -> GroundResult:
     if config.relabel_with_plane:
         # Points below the road (multipath) lower a cell's minimum and leave real road points
         # "above ground"; near the sensor, the fitted plane is the better ground model.
-        r2 = points[:, 0] ** 2 + points[:, 1] ** 2
-        on_plane = np.abs((points - c) @ normal) <= config.inlier_threshold
-        is_ground = is_ground | (on_plane & (r2 <= config.landmark_radius**2))
+        cand = np.flatnonzero(~is_ground & within)
+        on_plane = np.abs((points[cand] - c) @ normal) <= config.inlier_threshold
+        is_ground = is_ground.copy()
+        is_ground[cand[on_plane]] = True
     return GroundResult(is_ground, height, sup, normal, c, rms)
