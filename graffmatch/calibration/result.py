@@ -52,10 +52,19 @@ class CalibrationConfig(BaseModel):
         "then still contribute. It can only add pairs consistent with the GraffMatch estimate.",
     )
     gate_angle_deg: float = Field(
-        3.0, gt=0, description="Re-association / validity gate on the normal angle [deg]."
+        3.0, gt=0, description="Re-association gate on the normal angle [deg]."
     )
     gate_offset: float = Field(
-        0.10, gt=0, description="Re-association / validity gate on the plane offset [m]."
+        0.10, gt=0, description="Re-association gate on the plane offset [m]."
+    )
+    valid_angle_deg: float = Field(
+        1.5,
+        gt=0,
+        description="Validity: median normal residual of the matched planes must not exceed "
+        "this [deg] (boards: ~0.3 deg; a wrong or smeared match shows several degrees).",
+    )
+    valid_offset: float = Field(
+        0.05, gt=0, description="Validity: median plane-offset residual must not exceed this [m]."
     )
     min_normal_spread: float = Field(
         0.15,
@@ -246,8 +255,11 @@ def calibrate_planes(
         problems.append(f"registration degenerate (kappa={kappa:.3g})")
     if not match.valid and not problems:
         problems.append(f"GraffMatch: {match.message}")
-    if len(ang) and (np.median(ang) > cfg.gate_angle_deg or np.median(off) > cfg.gate_offset):
-        problems.append("residuals exceed the gates")
+    if len(ang) and (np.median(ang) > cfg.valid_angle_deg or np.median(off) > cfg.valid_offset):
+        problems.append(
+            f"median residuals {np.median(ang):.2f} deg / {100 * np.median(off):.1f} cm exceed "
+            f"{cfg.valid_angle_deg} deg / {100 * cfg.valid_offset:.0f} cm"
+        )
     valid = not problems
     message = "ok" if valid else "; ".join(problems)
     timings = {"graffmatch": t1 - t0, "register": t2 - t1}

@@ -248,7 +248,7 @@ def test_real_scans_accurate_or_flagged(shared_data, pair):
     res = calibrate_lidar_lidar(a, b, cfg)
     assert res.n_planes_source >= 10 and res.n_planes_target >= 10
     rot, trans = transform_errors(res.T_b_a, T_true)
-    if res.valid:  # the reference poses are good to ~0.3 deg / 8 cm
-        assert rot < 1.5 and trans < 0.15, (rot, trans)
+    if res.valid:  # reference poses ~0.3 deg / 8 cm; walls are seen partially (anchors)
+        assert rot < 2.0 and trans < 0.25, (rot, trans)
     else:
         assert res.message != "ok"
