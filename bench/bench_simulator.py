@@ -3,6 +3,7 @@
     .venv/bin/python bench/bench_simulator.py                 # all styles, all profiles
     .venv/bin/python bench/bench_simulator.py --scans 50 --json out.json
     .venv/bin/python bench/bench_simulator.py --write         # include writing KITTI files
+    .venv/bin/python bench/bench_simulator.py --accuracy      # also score the front end vs GT
 
 The target is <= 0.2 s per 64-beam scan. "render" is ray casting + noise + labels;
 "write" adds the .bin/.label files (with --write). World build and Embree scene build are
@@ -25,11 +26,46 @@ from graffmatch.datasets.simulator import (
     PROFILES,
     STYLES,
     build_world,
+    extraction_accuracy,
     gt_landmarks_in_scan,
     plan_route,
     render_scan,
 )
 from graffmatch.datasets.simulator.writer import write_scan
+
+
+def accuracy(style: str, profile: str, n_scans: int, seed: int, min_points: int) -> dict:
+    """Default LandmarkExtractor (semantic poles) vs the GT landmarks each scan saw."""
+    from graffmatch.lidar.extractor import LandmarkExtractor
+
+    world = build_world(style, seed)
+    traj = plan_route(world, n_scans, seed)
+    ex = LandmarkExtractor()
+    tot = {
+        k: {"n_gt": 0, "n_extracted": 0, "n_matched": 0, "ang": [], "off": []}
+        for k in ("lines", "planes")
+    }
+    for i, T in enumerate(traj.T_world_lidar):
+        pts, labels, lm = render_scan(world, T, profile, i, return_landmarks=True)
+        acc = extraction_accuracy(
+            ex.extract(pts, labels), gt_landmarks_in_scan(world, lm, T, min_points)
+        )
+        for k, t in tot.items():
+            for key in ("n_gt", "n_extracted", "n_matched"):
+                t[key] += acc[k][key]
+            t["ang"].append(acc[k]["angle_deg"]["median"])
+            t["off"].append(acc[k]["anchor_m"]["median"])
+    out = {"style": style, "profile": profile, "scans": n_scans, "min_points": min_points}
+    for k, t in tot.items():
+        out[k] = {
+            "n_gt": t["n_gt"],
+            "n_extracted": t["n_extracted"],
+            "recovered": t["n_matched"] / max(1, t["n_gt"]),
+            "precision": t["n_matched"] / max(1, t["n_extracted"]),
+            "angle_deg_median": float(np.nanmedian(t["ang"])),
+            "anchor_m_median": float(np.nanmedian(t["off"])),
+        }
+    return out
 
 
 def bench(style: str, profile: str, n_scans: int, seed: int, write: bool) -> dict:
@@ -75,6 +111,8 @@ def main() -> None:
     ap.add_argument("--styles", nargs="*", default=list(STYLES))
     ap.add_argument("--profiles", nargs="*", default=list(PROFILES))
     ap.add_argument("--write", action="store_true", help="include writing the KITTI files")
+    ap.add_argument("--accuracy", action="store_true", help="score the default front end vs GT")
+    ap.add_argument("--min-points", type=int, default=30, help="GT seen with >= this many points")
     ap.add_argument("--json", type=Path, default=None, help="write results as JSON here")
     args = ap.parse_args()
     rows = [
@@ -97,10 +135,32 @@ def main() -> None:
     worst64 = max((r["p95_s"] for r in rows if PROFILES[r["profile"]].n_beams == 64), default=0.0)
     print(f"target <= 0.2 s per 64-beam scan: worst p95 {worst64:.3f} s -> "
           f"{'OK' if worst64 <= 0.2 else 'TOO SLOW'}")  # fmt: skip
+    acc_rows = []
+    if args.accuracy:
+        acc_rows = [
+            accuracy(s, p, args.scans, args.seed, args.min_points)
+            for s in args.styles
+            for p in args.profiles
+        ]
+        print(f"\nfront end vs GT (GT seen with >= {args.min_points} points; medians per scan)")
+        h = f"{'style':<10} {'profile':<7} {'type':<6} {'GT':>5} {'found':>5} {'recov':>6} {'prec':>6} {'angle deg':>9} {'anchor m':>8}"
+        print(h)
+        print("-" * len(h))
+        for r in acc_rows:
+            for k in ("lines", "planes"):
+                a = r[k]
+                print(
+                    f"{r['style']:<10} {r['profile']:<7} {k:<6} {a['n_gt']:>5d} {a['n_extracted']:>5d} "
+                    f"{a['recovered']:>6.2f} {a['precision']:>6.2f} {a['angle_deg_median']:>9.2f} "
+                    f"{a['anchor_m_median']:>8.3f}"
+                )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(
-            json.dumps({"rows": rows, "load_avg": load, "write": args.write}, indent=2)
+            json.dumps(
+                {"rows": rows, "accuracy": acc_rows, "load_avg": load, "write": args.write},
+                indent=2,
+            )
         )
 
 

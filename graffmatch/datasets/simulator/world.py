@@ -423,6 +423,8 @@ class World:
             o3d.core.Tensor.from_numpy(np.ascontiguousarray(self.vertices)),
             o3d.core.Tensor.from_numpy(np.ascontiguousarray(self.triangles)),
         )
+        # Embree builds its BVH lazily on the first query: do it now, not inside scan 0
+        scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 100, 0, 0, -1]], np.float32)))
         return scene
 
     def to_open3d(self):
