@@ -182,6 +182,79 @@ def gt_from_dataset(source: Path, target: Path) -> NDArray[np.float64]:
     return np.linalg.inv(L[j]) @ L[i]
 
 
+# ----------------------------------------------------------------------------------------------
+# camera-depth calibration inputs
+# ----------------------------------------------------------------------------------------------
+def read_intrinsics(arg: str, what: str = "intrinsics") -> NDArray[np.float64]:
+    """3x3 K from a text file (9 numbers) or inline 'fx,fy,cx,cy' (or 9 numbers) [px]."""
+    path = Path(arg)
+    text = path.read_text() if path.is_file() else arg
+    if not path.is_file() and not re.fullmatch(r"[\d\s.,;eE+\-\[\]]+", arg):
+        raise MalformedFileError(f"{arg}: {what} file not found")
+    vals = [float(v) for v in _NUMBER.findall(text)]
+    if len(vals) == 4:
+        fx, fy, cx, cy = vals
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    elif len(vals) == 9:
+        K = np.reshape(vals, (3, 3))
+    else:
+        raise InvalidInputError(
+            f"{what}: expected 4 (fx,fy,cx,cy) or 9 (3x3) numbers, got {len(vals)}"
+        )
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
+        raise InvalidInputError(f"{what}: not a pinhole camera matrix {K.tolist()}")
+    return K
+
+
+def read_image(path: Path) -> NDArray[np.uint8]:
+    """An RGB image (H, W, 3) uint8 via OpenCV (which reads BGR)."""
+    import cv2
+
+    require_file(path, "image")
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise MalformedFileError(f"{path}: not an image OpenCV can read")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_depth_image(path: Path, scale: float = 0.001) -> NDArray[np.float32]:
+    """A z-depth image [m]: float .npy as is, integer images (e.g. 16-bit PNG in mm) * scale."""
+    require_file(path, "depth image")
+    if path.suffix.lower() == ".npy":
+        try:
+            D = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise MalformedFileError(f"{path}: cannot read ({exc})") from exc
+    else:
+        import cv2
+
+        D = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
+        if D is None:
+            raise MalformedFileError(f"{path}: not a depth image OpenCV can read")
+    if D.ndim != 2:
+        raise MalformedFileError(f"{path}: depth must be one channel, got shape {D.shape}")
+    if np.issubdtype(D.dtype, np.integer):  # e.g. 16-bit PNG in millimetres
+        return (D.astype(np.float64) * scale).astype(np.float32)
+    return D.astype(np.float32)
+
+
+def parse_board(spec: str):
+    """'7x5x0.07[x0.05]' -> Chessboard(cols=7, rows=5, square=0.07[, margin=0.05]) [m].
+
+    Inner corners (columns x rows), the square side and optionally the white margin.
+    """
+    from graffmatch.calibration.rig import Chessboard
+
+    num = r"\s*[xX]\s*([0-9.eE+-]+)"
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)" + num + f"(?:{num})?\\s*", spec)
+    if not m:
+        raise InvalidInputError(
+            f"--board {spec!r}: expected COLSxROWSxSQUARE[xMARGIN], e.g. 7x5x0.07"
+        )
+    extra = {} if m[4] is None else {"margin": float(m[4])}
+    return Chessboard(cols=int(m[1]), rows=int(m[2]), square=float(m[3]), **extra)
+
+
 def rotation_to_quaternion_xyzw(R: ArrayLike) -> NDArray[np.float64]:
     """Unit quaternion (x, y, z, w) with w >= 0, the TUM order."""
     from scipy.spatial.transform import Rotation

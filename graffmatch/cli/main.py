@@ -1056,7 +1056,9 @@ class CalibKind(str, Enum):
 @app.command(
     epilog="[bold]Examples[/bold]\n\n  graffmatch calibrate --demo\n\n"
     "  graffmatch calibrate --demo --kind camera-depth --seed 2\n\n"
-    "  graffmatch calibrate lidar_a.pcd lidar_b.pcd -o extrinsic.json",
+    "  graffmatch calibrate lidar_a.pcd lidar_b.pcd -o extrinsic.json\n\n"
+    "  graffmatch calibrate --image rgb.png --camera-k K.txt --depth depth.png "
+    "--depth-k 525,525,319.5,239.5 --board 7x5x0.07",
 )
 @cli_errors
 def calibrate(
@@ -1066,6 +1068,30 @@ def calibrate(
     kind: Annotated[CalibKind, typer.Option(help="Which demo rig.")] = CalibKind.both,
     seed: Annotated[int, typer.Option(help="Seed of the simulated rig.")] = 0,
     output: Annotated[Path | None, typer.Option("--output", "-o", help="Result JSON.")] = None,
+    image: Annotated[
+        Path | None, typer.Option(help="Camera-depth: RGB image of the chessboards (png/jpg).")
+    ] = None,
+    camera_k: Annotated[
+        str | None,
+        typer.Option(help="Camera intrinsics: a 3x3 text file or 'fx,fy,cx,cy' [px]."),
+    ] = None,
+    depth: Annotated[
+        Path | None,
+        typer.Option(help="Camera-depth: depth image, .npy [m] or 16-bit .png (--depth-scale)."),
+    ] = None,
+    depth_k: Annotated[
+        str | None, typer.Option(help="Depth intrinsics: a 3x3 text file or 'fx,fy,cx,cy' [px].")
+    ] = None,
+    depth_scale: Annotated[
+        float, typer.Option(help="Metres per unit of an integer depth image.")
+    ] = 0.001,
+    board: Annotated[
+        str | None,
+        typer.Option(
+            help="Chessboard: inner corners, square and optional margin [m], "
+            "COLSxROWSxSQUARE[xMARGIN], e.g. 7x5x0.07."
+        ),
+    ] = None,
 ) -> None:
     """Extrinsic calibration from planar boards with GraffMatch (planes only, no initial guess).
 
@@ -1093,8 +1119,15 @@ def calibrate(
             err.print(f"[bold red]calibrate:[/bold red] bounds missed for {', '.join(missed)}")
             raise typer.Exit(EXIT_NOT_VALID)
         return
+    if image is not None or depth is not None:
+        _calibrate_camera_depth(
+            image, camera_k, depth, depth_k, depth_scale, board, cal.camera_depth, output
+        )
+        return
     if cloud_a is None or cloud_b is None:
-        raise InvalidInputError("give two point clouds (LiDAR A, LiDAR B), or --demo")
+        raise InvalidInputError(
+            "give two point clouds (LiDAR A, LiDAR B), --image/--depth (camera-depth), or --demo"
+        )
     from graffmatch.cli.inputs import read_scan
 
     a, _ = read_scan(cloud_a)
@@ -1104,6 +1137,52 @@ def calibrate(
     T = np.asarray(res.T_target_source)
     out.print("[bold]T_b_a[/bold] (LiDAR A -> LiDAR B)")
     for r in T:
+        out.print("  " + " ".join(f"{v:+10.5f}" for v in r))
+    if output is not None:
+        _write_json(output, res.to_dict())
+        info(f"result: {output}")
+    if not res.valid:
+        raise typer.Exit(EXIT_NOT_VALID)
+
+
+def _calibrate_camera_depth(
+    image: Path | None,
+    camera_k: str | None,
+    depth: Path | None,
+    depth_k: str | None,
+    depth_scale: float,
+    board: str | None,
+    config: Any,
+    output: Path | None,
+) -> None:
+    """Camera-depth calibration from files: T_depth_camera, κ and plane residuals."""
+    from graffmatch import calibration
+    from graffmatch.cli.inputs import parse_board, read_depth_image, read_image, read_intrinsics
+
+    missing = [
+        name
+        for name, v in (
+            ("--image", image),
+            ("--camera-k", camera_k),
+            ("--depth", depth),
+            ("--depth-k", depth_k),
+            ("--board", board),
+        )
+        if v is None
+    ]
+    if missing:
+        raise InvalidInputError(f"camera-depth calibration also needs {', '.join(missing)}")
+    res = calibration.calibrate_camera_depth(
+        read_image(image),
+        read_intrinsics(camera_k, "--camera-k"),
+        read_depth_image(depth, depth_scale),
+        read_intrinsics(depth_k, "--depth-k"),
+        parse_board(board),
+        config,
+    )
+    out.print(repr(res))
+    out.print("[bold]T_depth_camera[/bold] (camera -> depth)")
+    for r in np.asarray(res.T_target_source):
         out.print("  " + " ".join(f"{v:+10.5f}" for v in r))
     if output is not None:
         _write_json(output, res.to_dict())

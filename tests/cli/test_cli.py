@@ -410,3 +410,37 @@ def test_malformed_inputs_give_one_line_naming_the_file(synth, tmp_path, name, c
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and expect in lines[0], res.stderr
     assert name in lines[0] or "source" in lines[0]
+
+
+def test_calibrate_camera_depth_from_files(tmp_path):
+    import cv2
+
+    from graffmatch.calibration.rig import make_camera_depth_scenario
+
+    sc = make_camera_depth_scenario(1)
+    cv2.imwrite(str(tmp_path / "rgb.png"), cv2.cvtColor(sc.image, cv2.COLOR_RGB2BGR))
+    depth_mm = np.round(np.nan_to_num(sc.depth, nan=0.0) * 1000).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "depth.png"), depth_mm)  # 16-bit PNG in millimetres
+    np.savetxt(tmp_path / "K.txt", sc.camera.K)
+    Kd = sc.depth_camera.K
+    b = sc.board
+    run(
+        "calibrate",
+        "--image",
+        tmp_path / "rgb.png",
+        "--camera-k",
+        tmp_path / "K.txt",
+        "--depth",
+        tmp_path / "depth.png",
+        "--depth-k",
+        f"{Kd[0, 0]},{Kd[1, 1]},{Kd[0, 2]},{Kd[1, 2]}",
+        "--board",
+        f"{b.cols}x{b.rows}x{b.square}",
+        "-o",
+        tmp_path / "cd.json",
+    )
+    data = json.loads((tmp_path / "cd.json").read_text())
+    rot, trans = transform_errors(np.asarray(data["T_depth_camera"]), sc.T_depth_camera)
+    assert rot <= 1.0 and trans <= 0.05
+    res = run("calibrate", "--image", tmp_path / "rgb.png", "--board", "7x5", code=1)
+    assert "--camera-k" in res.stderr or "COLSxROWSxSQUARE" in res.stderr
