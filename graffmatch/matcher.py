@@ -180,6 +180,7 @@ def match_with_distances(
         problems.append(f"only {len(assoc)} associations (< {cfg.min_associations})")
     if est.degenerate:
         problems.append(f"degenerate geometry (kappa={est.kappa:.3g} > {cfg.kappa_max:.3g})")
+    problems += reach_problems(source, target, est.T_target_source)
     common["info"].update(
         kappa_rotation=est.kappa_rotation, kappa_translation=est.kappa_translation,
         rms_offset=est.rms_offset, registration_inliers=inliers,
@@ -188,6 +189,17 @@ def match_with_distances(
         est.T_target_source, kappa=est.kappa, degenerate=est.degenerate, valid=not problems,
         message="; ".join(problems) or "ok", timings=timings, **common,
     )
+
+
+def reach_problems(source: LandmarkSet, target: LandmarkSet, T_target_source: np.ndarray) -> list[str]:
+    """Scans that share landmarks cannot be further apart than the reach of their landmarks
+    (the largest anchor distance from each sensor); a longer translation is an artefact of a
+    poorly constrained direction that kappa alone did not flag."""
+    reach = float(np.linalg.norm(source.anchors, axis=1).max() + np.linalg.norm(target.anchors, axis=1).max())
+    t_norm = float(np.linalg.norm(T_target_source[:3, 3]))
+    if t_norm > reach:
+        return [f"translation {t_norm:.1f} m exceeds the landmarks' reach {reach:.1f} m"]
+    return []
 
 
 def _register(source, target, assoc, weights, cfg: GraffMatchConfig):

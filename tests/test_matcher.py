@@ -78,3 +78,14 @@ def test_bad_input_raises():
         GraffMatcher(GraffMatchConfig(landmark_types=["line"])).match(sc.source, sc.target)
     with pytest.raises(Exception):  # pydantic validation
         GraffMatchConfig(epsilon=-1)
+
+
+def test_translation_beyond_landmark_reach_is_flagged():
+    from graffmatch.geometry.transforms import make_transform
+    from graffmatch.matcher import reach_problems
+
+    sc = make_scene_pair(5, 10, seed=0)
+    reach = np.linalg.norm(sc.source.anchors, axis=1).max() + np.linalg.norm(sc.target.anchors, axis=1).max()
+    assert reach_problems(sc.source, sc.target, sc.T_target_source) == []
+    far = make_transform(np.eye(3), [reach + 1.0, 0, 0])
+    assert "reach" in reach_problems(sc.source, sc.target, far)[0]
