@@ -675,16 +675,20 @@ class _Generator:
                         footprints.append(fp)
                         self._building(fp, side, self.u(cfg.building_height))
                         if sb > 1.5 and self.rng.random() < cfg.front_fences:
-                            self._fence_or_wall(lot, side, pos, pos + w, 0.4, "fence")
+                            self._fence_or_wall(lot, side, pos, pos + w, 0.4, "fence", footprints)
                 pos += w
             else:
                 g = self.u(cfg.gap)
                 g = min(g, s1 - pos)
                 r = self.rng.random()
                 if g > 2.0 and r < cfg.wall_prob:
-                    self._fence_or_wall(lot, side, pos + 0.3, pos + g - 0.3, 0.3, "wall")
+                    self._fence_or_wall(
+                        lot, side, pos + 0.3, pos + g - 0.3, 0.3, "wall", footprints
+                    )
                 elif g > 2.0 and r < cfg.wall_prob + cfg.fence_prob:
-                    self._fence_or_wall(lot, side, pos + 0.3, pos + g - 0.3, 0.3, "fence")
+                    self._fence_or_wall(
+                        lot, side, pos + 0.3, pos + g - 0.3, 0.3, "fence", footprints
+                    )
                 pos += g
 
     @staticmethod
@@ -700,18 +704,23 @@ class _Generator:
         return (x1 - n1, x1 - n0, a, b)
 
     @staticmethod
-    def _clip_against(fp, footprints, along_x: bool):
+    def _clip_against(fp, footprints, along_x: bool, margin: float = 1.0, min_len: float = 6.0):
         """Shrink a footprint along its side so it overlaps no earlier footprint (or drop it)."""
         fx0, fx1, fy0, fy1 = fp
         for g in footprints:
-            if fx0 < g[1] + 1.0 and g[0] - 1.0 < fx1 and fy0 < g[3] + 1.0 and g[2] - 1.0 < fy1:
+            if (
+                fx0 < g[1] + margin
+                and g[0] - margin < fx1
+                and fy0 < g[3] + margin
+                and g[2] - margin < fy1
+            ):
                 if along_x:
                     return None
                 # keep the larger free piece along y
-                lo_piece = (fy0, g[2] - 1.0)
-                hi_piece = (g[3] + 1.0, fy1)
+                lo_piece = (fy0, g[2] - margin)
+                hi_piece = (g[3] + margin, fy1)
                 fy0, fy1 = max((lo_piece, hi_piece), key=lambda p: p[1] - p[0])
-                if fy1 - fy0 < 6.0:
+                if fy1 - fy0 < min_len:
                     return None
         return (fx0, fx1, fy0, fy1)
 
@@ -737,13 +746,20 @@ class _Generator:
             lm[2 * f : 2 * f + 2] = k
         self.mb.add(V, F, BUILDING, inst, lm)
 
-    def _fence_or_wall(self, lot, side: str, a: float, b: float, inset: float, kind: str) -> None:
+    def _fence_or_wall(
+        self, lot, side: str, a: float, b: float, inset: float, kind: str, footprints: list
+    ) -> None:
         cfg = self.cfg
         if b - a < 1.5:
             return
         thick = 0.25 if kind == "wall" else 0.06
         height = self.u(cfg.wall_height if kind == "wall" else cfg.fence_height)
-        x0, x1, y0, y1 = self._footprint(lot, side, a, b, inset, inset + thick)
+        fp = self._footprint(lot, side, a, b, inset, inset + thick)
+        fp = self._clip_against(fp, footprints, side in ("-y", "+y"), margin=0.1, min_len=1.5)
+        if fp is None:
+            return
+        footprints.append(fp)
+        x0, x1, y0, y1 = fp
         zs = self.h(np.array([x0, x1, x0, x1]), np.array([y0, y0, y1, y1])) + CURB_HEIGHT
         zb, zt = zs.min() - 0.3, zs.min() + height
         V, F = _box(np.array([x0, y0, zb]), np.array([x1, y1, zt]))
