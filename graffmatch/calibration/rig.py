@@ -449,11 +449,16 @@ def make_camera_depth_scenario(
     depth_noise: float = 0.01,
     parallel_boards: bool = False,
     back_wall: float | None = 7.0,
+    tilt_scale: float = 1.0,
+    min_normal_spread: float = 0.15,
 ) -> CameraDepthScenario:
     """Boards 2–5 m in front of an RGB camera and a depth camera (≤ 0.25 m, ≤ 10° apart).
 
     ``back_wall``: distance of a wall behind the boards [m] (None: boards float in empty
     space); the depth camera sees it as clutter planes the camera has no counterpart for.
+    ``tilt_scale`` scales the boards' random yaw/pitch away from facing the camera (small values
+    give near-parallel boards, the hard case for matching); layouts whose normals spread less
+    than ``min_normal_spread`` are re-drawn.
 
     Boards are rejection-sampled so that each one lies wholly inside both images and their
     image footprints do not overlap (the detector masks one board after the other).
@@ -503,8 +508,8 @@ def make_camera_depth_scenario(
                 Tb = _board_facing(
                     centre,
                     np.zeros(3),
-                    rng.uniform(-0.7, 0.7),
-                    rng.uniform(-0.6, 0.6),
+                    tilt_scale * rng.uniform(-0.7, 0.7),
+                    tilt_scale * rng.uniform(-0.6, 0.6),
                     rng.uniform(-0.4, 0.4),
                 )
             box = footprint(Tb, camera, np.eye(4), 0.02)
@@ -526,7 +531,7 @@ def make_camera_depth_scenario(
         if len(boards) < n_boards:
             continue
         T_boards = np.stack(boards)
-        if parallel_boards or n_boards < 3 or _min_normal_spread(T_boards) > 0.15:
+        if parallel_boards or n_boards < 3 or _min_normal_spread(T_boards) > min_normal_spread:
             break
     else:
         raise InvalidInputError(f"cannot place {n_boards} boards inside both camera views")
