@@ -145,7 +145,7 @@ _PRESETS: dict[str, dict] = {
         n_blocks_y=2,
         block_size=(110.0, 160.0),
         lanes_per_direction=1,
-        parking_width=1.2,
+        parking_width=2.5,  # a wide shoulder: the odd parked car stays out of the lane
         sidewalk_width=0.0,
         max_slope=0.03,
         margin=120.0,
@@ -166,7 +166,7 @@ _PRESETS: dict[str, dict] = {
         yard_tree_rate=1.0,
         utility_pole_spacing=35.0,
         utility_pole_prob=0.9,
-        car_prob=0.05,
+        car_prob=0.03,
         clutter_rate=0.5,
         bush_rate=2.0,
     ),
