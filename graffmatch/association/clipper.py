@@ -91,22 +91,17 @@ class ClipperSolution:
 
 @nb.njit(cache=True, inline="always")
 def _matvecs(indptr, indices, data, u, Mu, Cu):
-    """Mu = (W + I) u and Cu = (A + I) u, scattering the rows of the support of u.
-
-    W is symmetric, so column access equals row access; the cost is the summed degree of the
-    support, which collapses to the clique's neighbourhood once the homotopy starts."""
+    """Mu = (W + I) u and Cu = (A + I) u (A: the edge pattern) in one row-wise pass."""
     m = u.shape[0]
     for r in range(m):
-        Mu[r] = u[r]
-        Cu[r] = u[r]
-    for c in range(m):
-        x = u[c]
-        if x == 0.0:
-            continue
-        for k in range(indptr[c], indptr[c + 1]):
-            j = indices[k]
-            Mu[j] += data[k] * x
-            Cu[j] += x
+        sw = u[r]
+        sc = u[r]
+        for k in range(indptr[r], indptr[r + 1]):
+            x = u[indices[k]]
+            sw += data[k] * x
+            sc += x
+        Mu[r] = sw
+        Cu[r] = sc
 
 
 @nb.njit(cache=True)
@@ -475,9 +470,8 @@ def _solve_once(W: sp.csr_matrix, cfg: ClipperConfig,
         W = W.copy()
         W.setdiag(0)
         W.eliminate_zeros()
-    indptr = W.indptr.astype(np.int64)
-    indices = W.indices.astype(np.int64)
-    data = W.data.astype(np.float64)
+    indptr, indices = W.indptr, W.indices
+    data = W.data if W.data.dtype == np.float64 else W.data.astype(np.float64)
     if cfg.prune and W.nnz:
         order = np.argsort(-np.diff(indptr), kind="stable")
         lower_bound = _greedy_clique_size(indptr, indices, order)
