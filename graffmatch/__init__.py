@@ -52,6 +52,18 @@ _EXPORTS: dict[str, str] = {
     # datasets
     "open_dataset": "graffmatch.datasets.registry",
     "make_scene_pair": "graffmatch.datasets.landmark_scene",
+    "simulate_dataset": "graffmatch.datasets.simulator",
+    # evaluation
+    "LoopClosureDataset": "graffmatch.evaluation.loop_closures",
+    "build_suite": "graffmatch.evaluation.suites",
+    "run_benchmark": "graffmatch.evaluation.benchmark",
+    "make_report": "graffmatch.evaluation.report",
+    # tools
+    "run_demo": "graffmatch.demo",
+    "write_match_view": "graffmatch.viz.match_view",
+    "calibrate_lidar_lidar": "graffmatch.calibration",
+    "calibrate_camera_depth": "graffmatch.calibration",
+    "run_calibration_demo": "graffmatch.calibration",
     # errors
     "GraffMatchError": "graffmatch.errors",
     "InvalidInputError": "graffmatch.errors",
