@@ -117,9 +117,9 @@ def test_table1_equals_recomputed_metrics(study: Path, report: Path) -> None:
     assert g["methods"]["CPMatch"]["recall_pct"] == 0.0
     assert g["best_auc"] == ["GraffMatch"]
     # in case 1 every method not scripted to fail there succeeds everywhere: a tie, all bold
+    # (except the ablation GraffMatch-Naive, which is shown but does not compete)
     assert set(g["best_recall_pct"]) == {
         "GraffMatch",
-        "GraffMatch-Naive",
         "ClusterMatch",
         "LiPMatch",
         "CLIPPER-Rn",
