@@ -121,7 +121,9 @@ def test_ground_truth_matches_recover_permutation(rng: np.random.Generator) -> N
     perm = rng.permutation(len(target))
     source = target[perm].transform(invert(T_ts))
     # Distractors: the same geometry rotated 20 deg about z in the source, and a point.
-    extra = _scene(np.random.default_rng(7), 3, 3).transform(make_transform(rot_z(0.35), [50, 0, 0]))
+    extra = _scene(np.random.default_rng(7), 3, 3).transform(
+        make_transform(rot_z(0.35), [50, 0, 0])
+    )
     source = LandmarkSet.concatenate([source, extra])
     matches, d = ground_truth_matches(source, target, T_ts, tau_d_deg=6.0, rho=40.0)
     assert len(matches) == len(target)
@@ -191,9 +193,9 @@ def test_validity_rules(rng: np.random.Generator) -> None:
     assert check_validity(source, target, all_m[:4], T_ts, cfg).reason == "few_matches"
     # Degenerate: only parallel walls (no rotation about their normal, no translation along them).
     walls = LandmarkSet.from_arrays(
-        [LandmarkType.PLANE] * 6, np.tile([1.0, 0, 0], (6, 1)), np.column_stack(
-            [np.arange(6.0), rng.uniform(-5, 5, 6), rng.uniform(0, 3, 6)]
-        )
+        [LandmarkType.PLANE] * 6,
+        np.tile([1.0, 0, 0], (6, 1)),
+        np.column_stack([np.arange(6.0), rng.uniform(-5, 5, 6), rng.uniform(0, 3, 6)]),
     )
     six = np.column_stack([np.arange(6)] * 2)
     v_deg = check_validity(walls.transform(invert(T_ts)), walls, six, T_ts, cfg)
@@ -209,7 +211,10 @@ def balm_build(shared_data: Path, tmp_path_factory: pytest.TempPathFactory):
     out = tmp_path_factory.mktemp("balm_lc")
     ds = KittiFolder(shared_data / "balm_courtyard")
     cfg = LoopClosureConfig(
-        place_spacing=3.0, max_places=10, min_path_length=10.0, wide_baseline_min_distance=5.0,
+        place_spacing=3.0,
+        max_places=10,
+        min_path_length=10.0,
+        wide_baseline_min_distance=5.0,
         workers=2,
     )
     # Through the suite entry point (quick, with the test's smaller config) to cover both.
