@@ -1,0 +1,35 @@
+"""`graffmatch benchmark --quick`: the whole study in small, end to end (issue: the tests run it).
+
+Builds the quick versions of the default suites (simulated worlds, and balm_courtyard when
+../shared/data is present), runs every quick method on a few pairs per case, and writes the
+report. Checks that the report's tables, figures and claim checks exist and hold numbers.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+from graffmatch.evaluation.benchmark import run_benchmark
+from tests.conftest import _shared_data_dir
+
+
+def test_quick_benchmark_produces_the_report(tmp_path):
+    suites = ["sim-downtown", "sim-openroad", "sim-suburban"]
+    if (_shared_data_dir() / "balm_courtyard").is_dir():
+        suites.append("balm_courtyard")
+    out = run_benchmark(suites, tmp_path / "bench", quick=True, workers=2, progress=False)
+    report = out / "report"
+    for name in ("summary.md", "table1.md", "table1.json", "table2.md", "expectations.json",
+                 "rho.json", "metrics.json", "config.json"):
+        assert (report / name).is_file(), name
+    assert any((report / "figures").glob("lmr_*.png"))
+    assert any((report / "figures").glob("errors_*.png"))
+    t1 = json.loads((report / "table1.json").read_text())
+    assert {"GraffMatch", "GraffMatch-Naive", "CLIPPER-Rn", "CPMatch"} <= set(t1["methods"])
+    assert {r["suite"] for r in t1["rows"]} == set(suites)
+    recalls = [r["methods"]["GraffMatch"]["recall_pct"] for r in t1["rows"]]
+    assert all(0.0 <= x <= 100.0 for x in recalls if not math.isnan(float(x)))
+    assert max(recalls) > 0.0  # GraffMatch registers some pair
+    claims = json.loads((report / "expectations.json").read_text())
+    assert {c["id"] for c in claims} >= {"graffmatch_best"}
