@@ -21,6 +21,7 @@ GraffMatch+ICP, their support points); ``kind == "point"`` methods use the raw s
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import time
 from collections.abc import Callable, Iterator
@@ -69,6 +70,22 @@ def as_xyz(scan: Any, name: str) -> NDArray[np.float64]:
     if len(P) < 10:
         raise InvalidInputError(f"{name} has only {len(P)} finite points")
     return P
+
+
+def dataclass_params(method: Any) -> dict[str, Any]:
+    """A dataclass method's parameters for ``config.json``: every field but ``name`` and
+    ``kind``, JSON-ready (an identity ``T_init`` is written as "identity")."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(method):
+        if f.name in ("name", "kind"):
+            continue
+        v = getattr(method, f.name)
+        if isinstance(v, np.ndarray):
+            v = "identity" if v.shape == (4, 4) and np.allclose(v, np.eye(4)) else v.tolist()
+        elif isinstance(v, tuple):
+            v = list(v)
+        out[f.name] = v
+    return out
 
 
 @dataclass

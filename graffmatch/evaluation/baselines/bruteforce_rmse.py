@@ -33,6 +33,7 @@ from graffmatch.evaluation.methods import (
     MethodOutput,
     PairInput,
     Timer,
+    dataclass_params,
     no_estimate,
     register_associations,
     too_few_landmarks,
@@ -115,13 +116,7 @@ class BruteForceRMSE:
 
     @property
     def params(self) -> dict[str, float]:
-        return {
-            "max_rmse_point": self.max_rmse_point,
-            "max_rmse_line": self.max_rmse_line,
-            "max_rmse_plane": self.max_rmse_plane,
-            "kappa_max": self.kappa_max,
-            "T_init": "identity" if np.allclose(self.T_init, np.eye(4)) else "given",  # type: ignore[dict-item]
-        }
+        return dataclass_params(self)
 
     def run(self, pair: PairInput) -> MethodOutput:
         T_init = check_transform(self.T_init, "T_init")

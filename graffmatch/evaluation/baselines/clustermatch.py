@@ -36,6 +36,7 @@ from graffmatch.evaluation.methods import (
     MethodOutput,
     PairInput,
     Timer,
+    dataclass_params,
     no_estimate,
     register_associations,
     too_few_landmarks,
@@ -179,19 +180,7 @@ class ClusterMatch:
 
     @property
     def params(self) -> dict[str, float]:
-        return {
-            k: getattr(self, k)
-            for k in (
-                "pair_tolerance",
-                "min_pair_distance",
-                "max_hypotheses",
-                "inlier_distance",
-                "inlier_angle_deg",
-                "stop_ratio",
-                "kappa_max",
-                "seed",
-            )
-        }
+        return dataclass_params(self)
 
     def _associate(self, src: LandmarkSet, tgt: LandmarkSet, T: Array) -> NDArray[np.intp]:
         ok, D = support_masks(src, tgt, T[None], self.inlier_distance, self.inlier_angle_deg)

@@ -34,6 +34,7 @@ from graffmatch.evaluation.methods import (
     MethodOutput,
     PairInput,
     Timer,
+    dataclass_params,
     no_estimate,
     register_associations,
     too_few_landmarks,
@@ -85,12 +86,7 @@ class CPMatch:
 
     @property
     def params(self) -> dict[str, float]:
-        return {
-            "max_cp_distance": self.max_cp_distance,
-            "max_angle_deg": self.max_angle_deg,
-            "kappa_max": self.kappa_max,
-            "T_init": "identity" if np.allclose(self.T_init, np.eye(4)) else "given",  # type: ignore[dict-item]
-        }
+        return dataclass_params(self)
 
     def run(self, pair: PairInput) -> MethodOutput:
         T_init = check_transform(self.T_init, "T_init")

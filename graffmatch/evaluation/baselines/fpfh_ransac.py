@@ -21,7 +21,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from graffmatch.evaluation.methods import MethodKind, MethodOutput, PairInput, Timer, as_xyz
+from graffmatch.evaluation.methods import (
+    MethodKind,
+    MethodOutput,
+    PairInput,
+    Timer,
+    as_xyz,
+    dataclass_params,
+)
 
 
 @dataclass
@@ -41,21 +48,7 @@ class FpfhRansac:
 
     @property
     def params(self) -> dict[str, float]:
-        return {
-            k: getattr(self, k)
-            for k in (
-                "voxel_size",
-                "normal_radius_factor",
-                "feature_radius_factor",
-                "distance_factor",
-                "edge_length_ratio",
-                "max_iterations",
-                "confidence",
-                "ransac_n",
-                "mutual_filter",
-                "seed",
-            )
-        }
+        return dataclass_params(self)
 
     def _features(self, P: np.ndarray):  # type: ignore[no-untyped-def]
         import open3d as o3d

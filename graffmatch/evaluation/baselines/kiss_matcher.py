@@ -17,7 +17,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from graffmatch.errors import GraffMatchError
-from graffmatch.evaluation.methods import MethodKind, MethodOutput, PairInput, Timer, as_xyz
+from graffmatch.evaluation.methods import (
+    MethodKind,
+    MethodOutput,
+    PairInput,
+    Timer,
+    as_xyz,
+    dataclass_params,
+)
 from graffmatch.geometry.transforms import make_transform
 
 
@@ -36,19 +43,7 @@ class KissMatcher:
 
     @property
     def params(self) -> dict[str, float]:
-        return {
-            k: getattr(self, k)
-            for k in (
-                "voxel_size",
-                "use_quatro",
-                "thr_linearity",
-                "num_max_corr",
-                "normal_r_gain",
-                "fpfh_r_gain",
-                "robin_noise_bound_gain",
-                "solver_noise_bound_gain",
-            )
-        }
+        return dataclass_params(self)
 
     def run(self, pair: PairInput) -> MethodOutput:
         try:

@@ -46,6 +46,7 @@ from graffmatch.evaluation.methods import (
     MethodOutput,
     PairInput,
     Timer,
+    dataclass_params,
     register_associations,
 )
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
@@ -96,21 +97,7 @@ class LiPMatch:
 
     @property
     def params(self) -> dict[str, float]:
-        return {
-            k: getattr(self, k)
-            for k in (
-                "max_area_ratio",
-                "max_elongation_ratio",
-                "max_elevation_diff_deg",
-                "use_gravity",
-                "max_normal_angle_diff_deg",
-                "max_centroid_distance_diff",
-                "max_perpendicular_diff",
-                "parallel_deg",
-                "max_nodes",
-                "kappa_max",
-            )
-        }
+        return dataclass_params(self)
 
     def unary(self, src: LandmarkSet, tgt: LandmarkSet) -> NDArray[np.bool_]:
         """(n_s, n_t) unary compatibility of plane pairs."""

@@ -30,7 +30,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graffmatch.errors import InvalidInputError
-from graffmatch.evaluation.methods import MethodKind, MethodOutput, PairInput, Timer, as_xyz
+from graffmatch.evaluation.methods import (
+    MethodKind,
+    MethodOutput,
+    PairInput,
+    Timer,
+    as_xyz,
+    dataclass_params,
+)
 from graffmatch.geometry.transforms import make_transform, rot_z
 
 Array = NDArray[np.float64]
@@ -104,12 +111,7 @@ class ScanContext:
 
     @property
     def params(self) -> dict[str, float]:
-        return {
-            "num_rings": self.num_rings,
-            "num_sectors": self.num_sectors,
-            "max_range": self.max_range,
-            "lidar_height": self.lidar_height,
-        }
+        return dataclass_params(self)
 
     def _yaw(self, pair: PairInput, timer: Timer) -> tuple[Array, Array, Array, dict]:
         src_raw, tgt_raw = pair.scans(self.name)
@@ -183,12 +185,7 @@ class ScanContextICP(ScanContext):
 
     @property
     def params(self) -> dict[str, float]:
-        return {
-            **super().params,
-            "icp_voxel": self.icp_voxel,
-            "icp_distances": list(self.icp_distances),  # type: ignore[dict-item]
-            "icp_iterations": self.icp_iterations,
-        }
+        return dataclass_params(self)
 
     def run(self, pair: PairInput) -> MethodOutput:
         timer = Timer()
