@@ -85,11 +85,13 @@ def _sorted_pair_tables(D_j, types_j, n_types):
 
 
 @nb.njit(cache=True)
-def _build_all_to_all(D_i, D_j, types_i, types_j, lookup, m, epsilon, inv_two_sigma2, n_types):
-    vals, bs, b2s, start = _sorted_pair_tables(D_j, types_j, n_types)
+def _edges_pass(D_i, types_i, vals, bs, b2s, start, lookup, epsilon, inv_two_sigma2, n_types,
+                fill, deg, indices, data, cursor):
+    """One sweep over the source landmark pairs and their target windows.
+
+    First sweep (``fill`` False) counts each vertex's degree into ``deg``; second sweep writes
+    both directions of every edge at ``cursor`` (the row starts)."""
     n_i = D_i.shape[0]
-    deg = np.zeros(m + 1, dtype=np.int64)
-    # pass 1: degrees
     for a in range(n_i):
         for a2 in range(a + 1, n_i):
             g = types_i[a] * n_types + types_i[a2]
@@ -102,35 +104,36 @@ def _build_all_to_all(D_i, D_j, types_i, types_j, lookup, m, epsilon, inv_two_si
             for k in range(k0, k1):
                 u = lookup[a, bs[k]]
                 v = lookup[a2, b2s[k]]
-                if u >= 0 and v >= 0:
+                if u < 0 or v < 0:
+                    continue
+                if not fill:
                     deg[u + 1] += 1
                     deg[v + 1] += 1
+                    continue
+                c = d - vals[k]
+                w = np.exp(-c * c * inv_two_sigma2)
+                indices[cursor[u]] = v
+                data[cursor[u]] = w
+                cursor[u] += 1
+                indices[cursor[v]] = u
+                data[cursor[v]] = w
+                cursor[v] += 1
+
+
+@nb.njit(cache=True)
+def _build_all_to_all(D_i, D_j, types_i, types_j, lookup, m, epsilon, inv_two_sigma2, n_types):
+    vals, bs, b2s, start = _sorted_pair_tables(D_j, types_j, n_types)
+    deg = np.zeros(m + 1, dtype=np.int64)
+    no_idx = np.empty(0, dtype=np.int32)
+    no_dat = np.empty(0)
+    _edges_pass(D_i, types_i, vals, bs, b2s, start, lookup, epsilon, inv_two_sigma2, n_types,
+                False, deg, no_idx, no_dat, deg)
     indptr = np.cumsum(deg)
-    nnz = indptr[-1]
-    indices = np.empty(nnz, dtype=np.int32)
-    data = np.empty(nnz)
-    fill = indptr[:-1].copy()
-    for a in range(n_i):
-        for a2 in range(a + 1, n_i):
-            g = types_i[a] * n_types + types_i[a2]
-            lo, hi = start[g], start[g + 1]
-            if lo == hi:
-                continue
-            d = D_i[a, a2]
-            k0 = lo + np.searchsorted(vals[lo:hi], d - epsilon, side="right")
-            k1 = lo + np.searchsorted(vals[lo:hi], d + epsilon, side="left")
-            for k in range(k0, k1):
-                u = lookup[a, bs[k]]
-                v = lookup[a2, b2s[k]]
-                if u >= 0 and v >= 0:
-                    c = d - vals[k]
-                    w = np.exp(-c * c * inv_two_sigma2)
-                    indices[fill[u]] = v
-                    data[fill[u]] = w
-                    fill[u] += 1
-                    indices[fill[v]] = u
-                    data[fill[v]] = w
-                    fill[v] += 1
+    indices = np.empty(indptr[-1], dtype=np.int32)
+    data = np.empty(indptr[-1])
+    cursor = indptr[:-1].copy()
+    _edges_pass(D_i, types_i, vals, bs, b2s, start, lookup, epsilon, inv_two_sigma2, n_types,
+                True, deg, indices, data, cursor)
     return indptr, indices, data
 
 
