@@ -66,7 +66,20 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-class SerialExecutor:
+class _ClosesOnExit:
+    """``with executor:`` closes it (pools, clients, clusters) however the block ends."""
+
+    def close(self) -> None:  # pragma: no cover - every executor overrides it
+        raise NotImplementedError
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class SerialExecutor(_ClosesOnExit):
     """In-process execution in input order (exceptions propagate unchanged)."""
 
     name = "serial"
@@ -78,14 +91,8 @@ class SerialExecutor:
     def close(self) -> None:
         return None
 
-    def __enter__(self) -> SerialExecutor:
-        return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-class LocalProcessExecutor:
+class LocalProcessExecutor(_ClosesOnExit):
     """A local process pool with a bounded submission window."""
 
     name = "local"
@@ -155,14 +162,8 @@ class LocalProcessExecutor:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
-    def __enter__(self) -> LocalProcessExecutor:
-        return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-class DaskExecutor:
+class DaskExecutor(_ClosesOnExit):
     """Dask distributed: an existing scheduler (``address``) or a temporary LocalCluster."""
 
     name = "dask"
@@ -240,14 +241,8 @@ class DaskExecutor:
             self._cluster.close()
             self._cluster = None
 
-    def __enter__(self) -> DaskExecutor:
-        return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
-class RayExecutor:
+class RayExecutor(_ClosesOnExit):
     """Ray (optional, not installed by default): ``ray.init(address)`` and ``ray.wait``."""
 
     name = "ray"
@@ -307,11 +302,6 @@ class RayExecutor:
         if self._own:
             self._ray.shutdown()
 
-    def __enter__(self) -> RayExecutor:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def make_executor(
