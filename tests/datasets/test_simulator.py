@@ -431,8 +431,55 @@ def test_suites_are_three_distinct_named_datasets():
     assert len({s.style for s in SUITES.values()}) == 3
     for s in SUITES.values():
         assert 100 <= s.n_scans <= 600
-        world_preset(s.style)
+        cfg = s.world_config()
+        assert cfg.style == s.style
+        for key, value in s.world_overrides.items():
+            assert getattr(cfg, key) == value
         get_profile(s.sensor)
+    bad = SUITES["sim-downtown"].model_copy(update={"world_overrides": {"towers": 3}})
+    with pytest.raises(ValueError, match="towers"):
+        bad.world_config()
+
+
+def _facade_area_per_block(world):
+    """Facade area of each block, found by the street lines around its anchor."""
+    lm = world.landmarks
+    sel = lm.attributes["category"] == CATEGORIES["facade"]
+    x, y = lm.anchors[sel, 0], lm.anchors[sel, 1]
+    bx = np.searchsorted(world.street_x, x) - 1
+    by = np.searchsorted(world.street_y, y) - 1
+    n = len(world.street_y) - 1
+    area = np.zeros((len(world.street_x) - 1) * n)
+    np.add.at(area, bx * n + by, lm.attributes["extent"][sel])
+    return area
+
+
+def test_block_variety_makes_parks_and_uneven_blocks():
+    base = world_preset("downtown").model_copy(update={"frontage": 0.5})
+    parks = build_world(base.model_copy(update={"open_block_prob": 1.0}), 4)
+    assert _facade_area_per_block(parks).max() == 0.0  # every block is a park: no facade
+    cat = parks.landmarks.attributes["category"]
+    assert np.sum(cat == CATEGORIES["trunk"]) > np.sum(
+        build_world(base, 4).landmarks.attributes["category"] == CATEGORIES["trunk"]
+    )
+    even = _facade_area_per_block(build_world(base, 4))
+    uneven = _facade_area_per_block(
+        build_world(base.model_copy(update={"frontage_spread": 1.0}), 4)
+    )
+    assert even.min() > 0  # frontage 0.5 on every block: each block has some facade
+    assert uneven.min() == 0.0 and uneven.std() > 1.3 * even.std()
+
+
+def test_tree_prob_spread_alternates_tree_lined_and_bare_stretches():
+    base = world_preset("open-road").model_copy(update={"tree_prob": 0.5, "tree_spacing": 8.0})
+
+    def trunks(cfg):
+        return int(
+            np.sum(build_world(cfg, 2).landmarks.attributes["category"] == CATEGORIES["trunk"])
+        )
+
+    assert trunks(base.model_copy(update={"tree_prob": 1.0})) > trunks(base)
+    assert trunks(base.model_copy(update={"tree_prob_spread": 0.5})) != trunks(base)
 
 
 def test_bad_inputs_raise_clear_errors(worlds, tmp_path):

@@ -6,6 +6,7 @@ import json
 import re
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -250,6 +251,15 @@ class SuiteSpec(BaseModel):
     n_scans: int = Field(gt=0, description="scans, ~1 m apart")
     sensor: str = Field("hdl64", description="sensor profile name")
     description: str = Field("", description="what makes this suite different")
+    world_overrides: dict[str, Any] = Field(
+        default_factory=dict,
+        description="WorldConfig fields changed from the style's preset (block variety, trees)",
+    )
+
+    def world_config(self) -> WorldConfig:
+        """The style's preset with this suite's overrides, validated."""
+        base = world_preset(self.style).model_dump()
+        return WorldConfig.model_validate({**base, **self.world_overrides})
 
 
 SUITES: dict[str, SuiteSpec] = {
@@ -261,15 +271,19 @@ SUITES: dict[str, SuiteSpec] = {
             seed=1,
             n_scans=400,
             sensor="hdl64",
-            description="dense facades, few poles, HDL-64E; plane-rich",
+            description="dense facades, few poles, HDL-64E; plane-rich; blocks vary from "
+            "closed street walls to gappy ones, some are plazas",
+            world_overrides={"frontage_spread": 0.35, "open_block_prob": 0.15},
         ),
         SuiteSpec(
             name="sim-suburban",
             style="suburban",
             seed=1,
-            n_scans=400,
+            n_scans=600,
             sensor="os1-64",
-            description="houses set back, street trees and lights, fences, OS1-64; pole-rich",
+            description="houses set back, street trees and lights, fences, OS1-64; pole-rich; "
+            "blocks vary in density, some are parks",
+            world_overrides={"frontage_spread": 0.35, "open_block_prob": 0.15},
         ),
         SuiteSpec(
             name="sim-openroad",
@@ -277,7 +291,15 @@ SUITES: dict[str, SuiteSpec] = {
             seed=1,
             n_scans=400,
             sensor="hdl64",
-            description="sparse: utility poles, signs, fences, few buildings, HDL-64E",
+            description="sparse: few buildings and fences; a country road lined with trees "
+            "(rows with gaps), utility poles and signs, HDL-64E; line-dominated",
+            world_overrides={
+                "tree_spacing": 7.0,
+                "tree_prob": 0.85,
+                "tree_prob_spread": 0.35,
+                "yard_tree_rate": 4.0,
+                "sign_rate": 4.0,
+            },
         ),
     )
 }
@@ -288,11 +310,12 @@ def simulate_suite(name: str, out_root: str | Path, **kwargs) -> Path:
     if name not in SUITES:
         raise InvalidInputError(f"unknown simulated suite {name!r}; choose one of {list(SUITES)}")
     s = SUITES[name]
+    kwargs.setdefault("n_scans", s.n_scans)
     return simulate_dataset(
         Path(out_root) / name,
         style=s.style,
         seed=s.seed,
-        n_scans=s.n_scans,
         sensor=s.sensor,
+        world_config=s.world_config(),
         **kwargs,
     )

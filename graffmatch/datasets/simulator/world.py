@@ -88,6 +88,19 @@ class WorldConfig(BaseModel):
     margin: float = Field(60.0, ge=0.0, description="terrain beyond the outermost streets")
     # buildings
     frontage: float = Field(0.85, ge=0.0, le=1.0, description="fraction of lot sides built")
+    frontage_spread: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="per-block frontage is frontage + U(-spread, spread): real streets alternate "
+        "dense and gappy blocks, which spreads the landmark count (and the IIR) between places",
+    )
+    open_block_prob: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="P(a block is unbuilt: a park, plaza or car park with trees, no buildings)",
+    )
     building_width: tuple[float, float] = Field((10.0, 30.0), description="facade width range")
     building_height: tuple[float, float] = Field((10.0, 40.0), description="height range")
     building_depth: tuple[float, float] = Field((10.0, 20.0), description="depth range")
@@ -104,6 +117,13 @@ class WorldConfig(BaseModel):
     sign_rate: float = Field(1.5, ge=0, description="sign posts per 100 m of street side")
     tree_spacing: float = Field(20.0, gt=3.0, description="spacing of street trees")
     tree_prob: float = Field(0.2, ge=0, le=1, description="P(tree at a slot)")
+    tree_prob_spread: float = Field(
+        0.0,
+        ge=0.0,
+        le=1.0,
+        description="per street side between crossings, P(tree) is tree_prob + U(-spread, "
+        "spread): tree-lined stretches alternate with bare ones",
+    )
     yard_tree_rate: float = Field(0.0, ge=0, description="trees in lots per 100 m of lot side")
     utility_pole_spacing: float = Field(40.0, gt=5.0, description="spacing of utility poles")
     utility_pole_prob: float = Field(0.0, ge=0, le=1, description="P(utility pole at a slot)")
@@ -482,6 +502,9 @@ class _Generator:
 
     def __init__(self, cfg: WorldConfig, rng: np.random.Generator, seed: int) -> None:
         self.cfg, self.rng, self.seed = cfg, rng, seed
+        # Block character comes from its own stream, so worlds without block variation keep
+        # exactly the draws (and bytes) they had before it existed.
+        self.block_rng = np.random.default_rng([seed, 0xB10C])
         self.mb = _MeshBuilder()
         self.hw = cfg.lanes_per_direction * cfg.lane_width + cfg.parking_width
         self.cw = self.hw + cfg.sidewalk_width
@@ -626,12 +649,18 @@ class _Generator:
             self.Y[j + 1] - self.cw,
         )
         footprints: list[tuple[float, float, float, float]] = []
+        cfg = self.cfg
+        frontage, trees = cfg.frontage, cfg.yard_tree_rate
+        if cfg.open_block_prob > 0 and self.block_rng.random() < cfg.open_block_prob:
+            frontage, trees = 0.0, max(2.0 * trees, 3.0)  # a park: trees instead of buildings
+        elif cfg.frontage_spread > 0:
+            d = self.block_rng.uniform(-cfg.frontage_spread, cfg.frontage_spread)
+            frontage = float(np.clip(frontage + d, 0.0, 1.0))
         # south/north sides first, then west/east which avoid existing footprints
         for side in ("-y", "+y", "-x", "+x"):
-            self._block_side(lot, side, footprints)
-        cfg = self.cfg
+            self._block_side(lot, side, footprints, frontage)
         perim = 2 * ((lot[1] - lot[0]) + (lot[3] - lot[2]))
-        for _ in range(self.rng.poisson(cfg.yard_tree_rate * perim / 100)):
+        for _ in range(self.rng.poisson(trees * perim / 100)):
             p = self._free_spot(lot, footprints, 1.5)
             if p is not None:
                 self._tree(p, trunk_radius=self.u((0.12, 0.3)), yard=True)
@@ -651,7 +680,7 @@ class _Generator:
                 return (x, y)
         return None
 
-    def _block_side(self, lot, side: str, footprints: list) -> None:
+    def _block_side(self, lot, side: str, footprints: list, frontage: float) -> None:
         cfg = self.cfg
         x0, x1, y0, y1 = lot
         along_x = side in ("-y", "+y")
@@ -663,7 +692,7 @@ class _Generator:
         s0, s1 = s0 + corner, s1 - corner
         pos = s0 + self.u((0.0, 3.0))
         while pos < s1 - 4.0:
-            if self.rng.random() < cfg.frontage:
+            if self.rng.random() < frontage:
                 w = min(self.u(cfg.building_width), s1 - pos)
                 if w < 6.0:
                     break
@@ -823,8 +852,12 @@ class _Generator:
                 x, y = self._xy(axis, c, side, s, self.cw + 1.5)
                 r, hgt = self.u((0.12, 0.18)), self.u((8.0, 11.0))
                 self._pole((x, y), r, hgt, POLE, "utility_pole", arm=(axis, side, 1.2, 0.4))
+        p_tree = cfg.tree_prob
+        if cfg.tree_prob_spread > 0:
+            d = self.block_rng.uniform(-cfg.tree_prob_spread, cfg.tree_prob_spread)
+            p_tree = float(np.clip(p_tree + d, 0.0, 1.0))
         for s in slots(cfg.tree_spacing, 1.0, 1.5):
-            if rng.random() < cfg.tree_prob and free(s):
+            if rng.random() < p_tree and free(s):
                 taken.append(s)
                 u = self.hw + (sw * 0.6 if sw >= 2.0 else sw + 2.0)
                 self._tree(self._xy(axis, c, side, s, u), trunk_radius=self.u((0.1, 0.25)))
