@@ -3,8 +3,8 @@
     python bench/bench_extraction_accuracy.py [--scans 12] [--root /tmp/gm-sim] [--json out.json]
 
 For each simulated suite, a few scans are simulated (or reused from ``--root``), landmarks are
-extracted with the default ``LandmarkExtractor`` (semantic pole mode: the simulator writes
-SemanticKITTI labels), and matched one-to-one to the ground-truth landmarks the scan saw with at
+extracted with the suite's own front-end config (the one its loop-closure build uses; semantic
+pole mode, since the simulator writes SemanticKITTI labels), and matched one-to-one to the ground-truth landmarks the scan saw with at
 least ``--min-points`` points (linear assignment on the invariant distance, 6 degree gate).
 Reports the fraction of GT landmarks recovered, the precision of the extraction, the angle
 error, and the offset error (plane: distance of the extracted anchor to the GT plane; pole:
@@ -26,6 +26,7 @@ from scipy.optimize import linear_sum_assignment
 from graffmatch.datasets import open_dataset
 from graffmatch.datasets.simulator import SUITES, simulate_dataset
 from graffmatch.datasets.simulator.simulate import scan_ground_truth
+from graffmatch.evaluation.suites import suite_config
 from graffmatch.geometry.distance import cross_distances
 from graffmatch.lidar import LandmarkExtractor
 
@@ -53,12 +54,19 @@ def main() -> None:
     ap.add_argument("--root", default="/tmp/graffmatch-extraction-accuracy")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
-    ex = LandmarkExtractor()
     rows = []
     for name, spec in SUITES.items():
+        ex = LandmarkExtractor(suite_config(name).extractor)
         seq = Path(args.root) / name
-        simulate_dataset(seq, style=spec.style, seed=spec.seed, n_scans=args.scans * 3,
-                         sensor=spec.sensor, reuse=True)
+        simulate_dataset(
+            seq,
+            style=spec.style,
+            seed=spec.seed,
+            n_scans=args.scans * 3,
+            sensor=spec.sensor,
+            world_config=spec.world_config(),
+            reuse=True,
+        )
         ds = open_dataset("folder", seq)
         n_gt = {1: 0, 2: 0}
         n_est = {1: 0, 2: 0}
@@ -78,21 +86,36 @@ def main() -> None:
         a, o, an, t = map(np.concatenate, (angs, offs, anchors, kinds))
         for label, kind in (("poles", 1), ("planes", 2)):
             sel = t == kind
-            rows.append({
-                "suite": name, "type": label, "gt_seen": n_gt[kind], "extracted": n_est[kind],
-                "matched": int(sel.sum()),
-                "recovered_of_gt": round(int(sel.sum()) / max(n_gt[kind], 1), 3),
-                "precision": round(int(sel.sum()) / max(n_est[kind], 1), 3),
-                "angle_med_deg": round(float(np.median(a[sel])), 2) if sel.any() else "",
-                "angle_p90_deg": round(float(np.percentile(a[sel], 90)), 2) if sel.any() else "",
-                "offset_med_m": round(float(np.median(o[sel])), 3) if sel.any() else "",
-                "offset_p90_m": round(float(np.percentile(o[sel], 90)), 3) if sel.any() else "",
-                "anchor_med_m": round(float(np.median(an[sel])), 2) if sel.any() else "",
-            })
+            rows.append(
+                {
+                    "suite": name,
+                    "type": label,
+                    "gt_seen": n_gt[kind],
+                    "extracted": n_est[kind],
+                    "matched": int(sel.sum()),
+                    "recovered_of_gt": round(int(sel.sum()) / max(n_gt[kind], 1), 3),
+                    "precision": round(int(sel.sum()) / max(n_est[kind], 1), 3),
+                    "angle_med_deg": round(float(np.median(a[sel])), 2) if sel.any() else "",
+                    "angle_p90_deg": round(float(np.percentile(a[sel], 90)), 2)
+                    if sel.any()
+                    else "",
+                    "offset_med_m": round(float(np.median(o[sel])), 3) if sel.any() else "",
+                    "offset_p90_m": round(float(np.percentile(o[sel], 90)), 3) if sel.any() else "",
+                    "anchor_med_m": round(float(np.median(an[sel])), 2) if sel.any() else "",
+                }
+            )
         print(f"{name}: done", flush=True)
     print_table(rows, list(rows[0]))
-    write_json(args.json, {"benchmark": "extraction_accuracy", "machine": machine(), "rows": rows,
-                           "min_points": args.min_points, "scans_per_suite": args.scans})
+    write_json(
+        args.json,
+        {
+            "benchmark": "extraction_accuracy",
+            "machine": machine(),
+            "rows": rows,
+            "min_points": args.min_points,
+            "scans_per_suite": args.scans,
+        },
+    )
 
 
 if __name__ == "__main__":
