@@ -105,6 +105,22 @@ def _matvecs(indptr, indices, data, u, Mu, Cu):
 
 
 @nb.njit(cache=True)
+def _matvecs_from_support(indptr, indices, data, u, support, Mu, Cu):
+    """Same as :func:`_matvecs` for a u that is zero outside ``support``: W is symmetric, so
+    scattering the support's rows costs their degrees instead of every edge."""
+    Mu[:] = 0.0
+    Cu[:] = 0.0
+    for v in support:
+        x = u[v]
+        Mu[v] += x
+        Cu[v] += x
+        for k in range(indptr[v], indptr[v + 1]):
+            w = indices[k]
+            Mu[w] += data[k] * x
+            Cu[w] += x
+
+
+@nb.njit(cache=True)
 def _increment_d(u, Mu, Cu, eps):
     """Smallest d that makes an active non-edge unprofitable (inf when the support is a clique)."""
     s = np.sum(u)
@@ -209,12 +225,17 @@ def _homotopy(indptr, indices, data, u0, cfg: ClipperConfig) -> tuple[np.ndarray
     outer = 0
     active = np.ones(m, dtype=np.bool_)
     sub = (indptr, indices, data)
+    sub_ids = np.arange(m)  # global vertex ids of the rows of ``sub``
     for outer in range(1, cfg.max_outer_iterations + 1):  # noqa: B007 (returned count)
         idx = np.flatnonzero(active)
-        if idx.size < m:
-            sub = _subgraph(indptr, indices, data, active)
-        else:
-            sub = (indptr, indices, data)
+        if idx.size != sub_ids.size or not np.array_equal(idx, sub_ids):
+            # The active set mostly shrinks: cut it from the current (smaller) subgraph when it
+            # can, and from the whole graph only when a vertex came back.
+            if np.all(np.isin(idx, sub_ids, assume_unique=True)):
+                sub = _subgraph(sub[0], sub[1], sub[2], active[sub_ids])
+            else:
+                sub = _subgraph(indptr, indices, data, active)
+            sub_ids = idx
         uk = np.ascontiguousarray(u[idx])
         if not np.any(uk > 0):
             uk[:] = 1.0
@@ -227,7 +248,7 @@ def _homotopy(indptr, indices, data, u0, cfg: ClipperConfig) -> tuple[np.ndarray
         matvecs += nmv + 1
         u[:] = 0.0
         u[idx] = uk
-        _matvecs(indptr, indices, data, u, Mu, Cu)
+        _matvecs_from_support(indptr, indices, data, u, idx[uk > 0.0], Mu, Cu)
         grad = Mu - d * (u.sum() - Cu)
         new_active = (u > cfg.eps) | (grad >= 0.0)
         if np.any(new_active & ~active):
@@ -305,15 +326,15 @@ def _subgraph(indptr, indices, data, keep_mask):
                     c += 1
             counts[newid[v] + 1] = c
     ip = np.cumsum(counts)
-    ind = np.empty(ip[-1], dtype=np.int64)
-    dat = np.empty(ip[-1])
+    ind = np.empty(ip[-1], dtype=np.int32)
+    dat = np.empty(ip[-1], dtype=data.dtype)
     for v in range(m):
         if keep_mask[v]:
             pos = ip[newid[v]]
             for t in range(indptr[v], indptr[v + 1]):
                 w = indices[t]
                 if keep_mask[w]:
-                    ind[pos] = newid[w]
+                    ind[pos] = np.int32(newid[w])
                     dat[pos] = data[t]
                     pos += 1
     return ip, ind, dat

@@ -162,3 +162,20 @@ def test_greedy_finds_denser_clique_the_relaxation_misses():
     best = solve_clipper(Ws, ClipperConfig(greedy_starts=60))
     assert set(best.selected.tolist()) == set(clique.tolist())
     assert clique_density(Ws, best.selected) >= clique_density(Ws, solve_clipper(Ws).selected)
+
+
+def test_support_scatter_matvec_equals_full_matvec():
+    """The homotopy's KKT check scatters only the support's rows; it must equal the full pass."""
+    from graffmatch.association.clipper import _matvecs, _matvecs_from_support
+
+    rng = np.random.default_rng(3)
+    A = sp.random(300, 300, density=0.2, random_state=4, format="csr")
+    W = sp.csr_matrix(sp.triu(A, 1) + sp.triu(A, 1).T)
+    u = np.zeros(300)
+    support = np.sort(rng.choice(300, 25, replace=False))
+    u[support] = rng.uniform(0.1, 1.0, 25)
+    Mu, Cu, Mu2, Cu2 = (np.empty(300) for _ in range(4))
+    _matvecs(W.indptr, W.indices, W.data, u, Mu, Cu)
+    _matvecs_from_support(W.indptr, W.indices, W.data, u, support, Mu2, Cu2)
+    assert np.allclose(Mu, Mu2, atol=1e-12) and np.allclose(Cu, Cu2, atol=1e-12)
+    assert np.allclose(Mu, (W + sp.eye(300)) @ u, atol=1e-12)
