@@ -57,6 +57,19 @@ class ClipperConfig(BaseModel):
         ),
     )
     seed: int = Field(0, description="seed of the random start vector (deterministic)")
+    d_schedule: Literal["min", "mean"] = Field(
+        "min",
+        description=(
+            "how the penalty d grows between homotopy steps, from the ratios Mu/(sum u - Cu) "
+            "over active non-edges: 'min' (the paper's CLIPPER: the smallest ratio, many short "
+            "steps) or 'mean' (the current reference C++: the mean ratio, also for the initial "
+            "d; fewer, longer steps)"
+        ),
+    )
+    rescale_u0: bool = Field(
+        False,
+        description="one power-method step on the start vector (the current reference C++ does)",
+    )
     greedy_starts: int = Field(
         0,
         ge=0,
@@ -121,16 +134,24 @@ def _matvecs_from_support(indptr, indices, data, u, support, Mu, Cu):
 
 
 @nb.njit(cache=True)
-def _increment_d(u, Mu, Cu, eps):
-    """Smallest d that makes an active non-edge unprofitable (inf when the support is a clique)."""
+def _increment_d(u, Mu, Cu, eps, use_mean=False):
+    """Increase of d from |Mu / (sum u - Cu)| over the active vertices with non-edges in the
+    support: the smallest ratio (the first non-edge to become unprofitable) or their mean.
+    inf when there is no such vertex, i.e. the support is a clique."""
     s = np.sum(u)
     best = np.inf
+    total = 0.0
+    count = 0
     for r in range(u.shape[0]):
         cb = s - Cu[r]
         if cb > eps and u[r] > eps:
             ratio = abs(Mu[r] / cb)
+            total += ratio
+            count += 1
             if ratio < best:
                 best = ratio
+    if use_mean and count > 0:
+        return total / count
     return best
 
 
@@ -219,7 +240,12 @@ def _homotopy(indptr, indices, data, u0, cfg: ClipperConfig) -> tuple[np.ndarray
     Cu = np.empty(m)
     _matvecs(indptr, indices, data, u, Mu, Cu)
     matvecs = 1
-    d = _increment_d(u, Mu, Cu, cfg.eps)
+    use_mean = cfg.d_schedule == "mean"
+    if cfg.rescale_u0:
+        u = Mu / np.linalg.norm(Mu)  # (W + I) u0: random starts look alike after one step
+        _matvecs(indptr, indices, data, u, Mu, Cu)
+        matvecs += 1
+    d = _increment_d(u, Mu, Cu, cfg.eps, use_mean)
     d = 0.0 if not np.isfinite(d) else d
     inner_total = 0
     outer = 0
@@ -256,7 +282,7 @@ def _homotopy(indptr, indices, data, u0, cfg: ClipperConfig) -> tuple[np.ndarray
             active |= new_active
             continue
         active = new_active
-        step = _increment_d(u, Mu, Cu, cfg.eps)
+        step = _increment_d(u, Mu, Cu, cfg.eps, use_mean)
         if not np.isfinite(step):
             break
         d += step
