@@ -29,7 +29,8 @@ Rounding = Literal["nonzero", "dsd_heu", "clique"]
 
 
 class ClipperConfig(BaseModel):
-    """Solver parameters; defaults follow the reference CLIPPER implementation."""
+    """Solver parameters: tolerances and line search as in the reference CLIPPER; the d schedule
+    defaults to the paper's (the most exact), the reference C++'s faster one is an option."""
 
     model_config = ConfigDict(extra="forbid")
 
