@@ -20,7 +20,7 @@ from typing import Literal
 import numba as nb
 import numpy as np
 import scipy.sparse as sp
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from graffmatch.errors import InvalidInputError
@@ -80,6 +80,19 @@ class ClipperConfig(BaseModel):
             "or a greedy one); the relaxation can settle on a sparser clique (e.g. a street "
             "seen 180 degrees flipped) while a denser one exists. 0 = CLIPPER only"
         ),
+    )
+    greedy_max_work: float = Field(
+        1.0,
+        ge=0,
+        description=(
+            "bound on the greedy cliques' work, in edge visits per stored non-zero of W "
+            "(1.0 ~ one mat-vec); deterministic, unlike a timer"
+        ),
+    )
+    greedy_min_work: int = Field(
+        200_000,
+        ge=0,
+        description="floor of that bound in edge visits (~1 ms), so small graphs try every start",
     )
 
 
@@ -403,38 +416,108 @@ def _clique_cleanup(W: sp.csr_matrix, sel: NDArray[np.int64], u: NDArray[np.floa
 
 def clique_density(W: sp.csr_matrix, sel: NDArray[np.int64]) -> float:
     """Objective of the densest-clique problem for a binary selection: u^T (W + I) u / u^T u."""
-    if len(sel) == 0:
-        return 0.0
-    return float((len(sel) + W[sel][:, sel].sum()) / len(sel))
+    W = W if isinstance(W, sp.csr_matrix) else sp.csr_matrix(W)
+    sel = np.asarray(sel, dtype=np.int64).reshape(-1)
+    return float(_clique_objective(W.indptr, W.indices, W.data, sel, W.shape[0]))
 
 
 @nb.njit(cache=True)
-def _greedy_cliques(indptr, indices, data, starts):
-    """Grow a max-weight clique greedily from each start; return the densest one.
+def _has_diagonal(indptr, indices):
+    """True when some stored entry is on the diagonal (one pass over the indices, no copy)."""
+    for r in range(indptr.shape[0] - 1):
+        for k in range(indptr[r], indptr[r + 1]):
+            if indices[k] == r:
+                return True
+    return False
+
+
+@nb.njit(cache=True)
+def _weights_valid(data):
+    """All weights finite and in [0, 1] (one pass)."""
+    for k in range(data.shape[0]):
+        x = data[k]
+        if not (x >= 0.0 and x <= 1.0 + 1e-12):
+            return False
+    return True
+
+
+@nb.njit(cache=True)
+def _row_sums(indptr, data):
+    """Weighted degree of every vertex (CSR row sums), without a scipy temporary."""
+    m = indptr.shape[0] - 1
+    out = np.zeros(m)
+    for r in range(m):
+        s = 0.0
+        for k in range(indptr[r], indptr[r + 1]):
+            s += data[k]
+        out[r] = s
+    return out
+
+
+@nb.njit(cache=True)
+def _clique_objective(indptr, indices, data, sel, m):
+    """u^T (W + I) u / u^T u of the indicator of ``sel``: (k + sum of in-selection weights) / k."""
+    k = sel.shape[0]
+    if k == 0:
+        return 0.0
+    mask = np.zeros(m, dtype=np.bool_)
+    for v in sel:
+        mask[v] = True
+    total = 0.0
+    for v in sel:
+        for t in range(indptr[v], indptr[v + 1]):
+            if mask[indices[t]]:
+                total += data[t]
+    return (k + total) / k
+
+
+@nb.njit(cache=True)
+def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_work,
+                 prune_to_best, skip_covered):
+    """Grow a greedy max-weight clique from each start, in order; returns the cliques found.
 
     Each step adds the candidate (adjacent to the whole clique) with the largest summed weight
-    to the clique. Candidates are kept in an explicit list, so a start costs about
-    O(clique size x degree)."""
+    to the clique. Work is bounded three ways, none of which can drop a clique that beats
+    ``lower_bound`` on the objective (k + 2 W) / k <= 1 + (k - 1) w_max:
+      * a start already inside a clique found here is skipped (it would regrow that clique);
+      * a growth stops as soon as 1 + (size + candidates - 1) w_max <= the best objective so far
+        (``prune_to_best``) or <= ``lower_bound``;
+      * the total of edges visited stops at ``max_work`` (deterministic, not a timer).
+    Returns (members, offsets, objectives, work): clique c is members[offsets[c]:offsets[c+1]]."""
     m = indptr.shape[0] - 1
+    w_max = 0.0
+    for t in range(data.shape[0]):
+        if data[t] > w_max:
+            w_max = data[t]
     score = np.zeros(m)
     is_cand = np.zeros(m, dtype=np.bool_)
-    nbr_w = np.zeros(m)
-    is_nbr = np.zeros(m, dtype=np.bool_)
-    best = np.empty(0, dtype=np.int64)
-    best_density = -1.0
+    adjacent = np.zeros(m, dtype=np.bool_)
+    covered = np.zeros(m, dtype=np.bool_)
     clique = np.empty(m, dtype=np.int64)
     cand = np.empty(m, dtype=np.int64)
+    members = np.empty(0, dtype=np.int64)
+    n_members = 0
+    offsets = np.zeros(max_cliques + 1, dtype=np.int64)
+    objectives = np.empty(max_cliques)
+    n_found = 0
+    best = lower_bound
+    work = 0
     for s in starts:
+        if n_found >= max_cliques or work >= max_work:
+            break
+        if (skip_covered and covered[s]) or 1.0 + (indptr[s + 1] - indptr[s]) * w_max <= best:
+            continue
         n_cand = 0
         for t in range(indptr[s], indptr[s + 1]):
             j = indices[t]
-            is_cand[j] = True
             score[j] = data[t]
             cand[n_cand] = j
             n_cand += 1
+        work += n_cand
         clique[0] = s
         k = 1
         total_w = 0.0
+        aborted = False
         while n_cand > 0:
             bi = -1
             bs = -1.0
@@ -443,33 +526,103 @@ def _greedy_cliques(indptr, indices, data, starts):
                 if score[v] > bs:
                     bs = score[v]
                     bi = v
+            # Bound on any clique grown from here: the candidates S (j = |S|) add at most
+            # their current scores (<= bs each) plus j (j - 1) / 2 w_max among themselves;
+            # the objective, quasi-convex in j, is largest at j = 0 or j = n_cand.
+            bound = 1.0 + (2.0 * total_w + 2.0 * n_cand * bs + n_cand * (n_cand - 1.0) * w_max) / (k + n_cand)
+            if bound <= best and (2.0 * total_w + k) / k <= best:
+                aborted = True
+                break
             clique[k] = bi
             k += 1
             total_w += bs
+            # Keep the candidates adjacent to bi: flag them, scan bi's row once, compact.
+            for c in range(n_cand):
+                is_cand[cand[c]] = True
+            is_cand[bi] = False
+            score[bi] = 0.0
             for t in range(indptr[bi], indptr[bi + 1]):
-                is_nbr[indices[t]] = True
-                nbr_w[indices[t]] = data[t]
+                j = indices[t]
+                if is_cand[j]:
+                    score[j] += data[t]
+                    adjacent[j] = True
             new_n = 0
             for c in range(n_cand):
                 v = cand[c]
-                if v != bi and is_nbr[v]:
-                    score[v] += nbr_w[v]
+                if v == bi:
+                    continue
+                is_cand[v] = False
+                if adjacent[v]:
+                    adjacent[v] = False
                     cand[new_n] = v
                     new_n += 1
                 else:
-                    is_cand[v] = False
                     score[v] = 0.0
-            for t in range(indptr[bi], indptr[bi + 1]):
-                is_nbr[indices[t]] = False
+            work += (indptr[bi + 1] - indptr[bi]) + 2 * n_cand
             n_cand = new_n
         for c in range(n_cand):
-            is_cand[cand[c]] = False
             score[cand[c]] = 0.0
-        density = (k + 2.0 * total_w) / k
-        if density > best_density:
-            best_density = density
-            best = clique[:k].copy()
-    return best, best_density
+        if aborted:
+            continue
+        for c in range(k):
+            covered[clique[c]] = True
+        objective = (k + 2.0 * total_w) / k
+        if objective <= lower_bound:
+            continue
+        if prune_to_best:
+            if objective <= best:
+                continue
+            best = objective
+        if n_members + k > members.shape[0]:
+            bigger = np.empty(max(2 * members.shape[0], n_members + k), dtype=np.int64)
+            bigger[:n_members] = members[:n_members]
+            members = bigger
+        members[n_members:n_members + k] = np.sort(clique[:k])
+        n_members += k
+        objectives[n_found] = objective
+        n_found += 1
+        offsets[n_found] = n_members
+    return members[:n_members], offsets[: n_found + 1], objectives[:n_found], work
+
+
+def _csr_parts(W: sp.csr_matrix) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The CSR arrays as they are (numba compiles for their dtypes): no copies or casts."""
+    return W.indptr, W.indices, W.data
+
+
+def greedy_start_order(W: sp.csr_matrix, n_starts: int) -> NDArray[np.int64]:
+    """The ``n_starts`` vertices of largest weighted degree (ties: smaller index first)."""
+    indptr, _, data = _csr_parts(W)
+    wdeg = _row_sums(indptr, data)
+    n = min(n_starts, wdeg.shape[0])
+    if n <= 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.argsort(-wdeg, kind="stable")[:n].astype(np.int64)
+
+
+def greedy_cliques(
+    W: sp.spmatrix, starts: ArrayLike, max_cliques: int | None = None, lower_bound: float = 0.0,
+    max_work: int | None = None,
+) -> tuple[list[NDArray[np.int64]], NDArray[np.float64]]:
+    """Distinct greedy max-weight cliques grown from ``starts`` (in that order).
+
+    A start inside an earlier clique is skipped, so every clique is distinct. Only cliques whose
+    objective (k + sum of in-clique weights) / k exceeds ``lower_bound`` are kept, and a growth
+    that provably cannot exceed it stops early. ``max_work`` bounds the edges
+    visited (default unbounded). Returns the cliques (sorted vertex ids) and their objectives,
+    in the order found. For multi-hypothesis verification: several clique hypotheses of one
+    graph at the cost of a few mat-vecs."""
+    W = sp.csr_matrix(W)
+    starts = np.asarray(starts, dtype=np.int64).reshape(-1)
+    if starts.size and (starts.min() < 0 or starts.max() >= W.shape[0]):
+        raise InvalidInputError("greedy start index out of range")
+    indptr, indices, data = _csr_parts(W)
+    n_max = starts.size if max_cliques is None else int(max_cliques)
+    budget = np.iinfo(np.int64).max if max_work is None else int(max_work)
+    members, offsets, objectives, _ = _greedy_core(
+        indptr, indices, data, starts, float(lower_bound), max(n_max, 0), budget, False, True
+    )
+    return [members[offsets[c]:offsets[c + 1]] for c in range(len(objectives))], objectives
 
 
 def solve_clipper(weights: sp.spmatrix, config: ClipperConfig | None = None,
@@ -478,27 +631,34 @@ def solve_clipper(weights: sp.spmatrix, config: ClipperConfig | None = None,
 
     ``weights``: symmetric (m x m) sparse matrix of edge weights in (0, 1], zero diagonal
     (non-zero pattern = edges). Returns the selected vertex indices, sorted. With
-    ``config.greedy_starts`` > 0, greedy cliques compete with CLIPPER's on the same objective.
+    ``config.greedy_starts`` > 0, greedy cliques compete with CLIPPER's on the same objective;
+    they only run where they can beat it (see :func:`greedy_cliques`), within
+    max(``greedy_max_work`` x nnz, ``greedy_min_work``) edge visits.
     """
     cfg = config or ClipperConfig()
-    W = sp.csr_matrix(weights)
-    if W.shape[0] == W.shape[1] and W.nnz and W.diagonal().any():
+    W = weights if isinstance(weights, sp.csr_matrix) else sp.csr_matrix(weights)
+    if W.shape[0] == W.shape[1] and W.nnz and _has_diagonal(W.indptr, W.indices):
         W = W.copy()
         W.setdiag(0)
         W.eliminate_zeros()
     sol = _solve_once(W, cfg, u0)
     if cfg.greedy_starts and W.nnz:
-        density = clique_density(W, sol.selected)
-        wdeg = np.asarray(W.sum(axis=1)).ravel()
-        starts = np.argsort(-wdeg, kind="stable")[: cfg.greedy_starts].astype(np.int64)
-        g_sel, g_density = _greedy_cliques(W.indptr.astype(np.int64), W.indices.astype(np.int64),
-                                           W.data.astype(np.float64), starts)
-        sol.info.update(clipper_density=density, greedy_density=float(g_density))
-        if g_density > density + 1e-9:
-            sol.selected = np.sort(g_sel)
+        indptr, indices, data = _csr_parts(W)
+        density = _clique_objective(indptr, indices, data, sol.selected, W.shape[0])
+        starts = greedy_start_order(W, cfg.greedy_starts)
+        budget = max(int(cfg.greedy_max_work * W.nnz), cfg.greedy_min_work)
+        members, offsets, objectives, work = _greedy_core(
+            indptr, indices, data, starts, density + 1e-9, starts.size, budget, True, False
+        )
+        sol.info.update(clipper_density=float(density), greedy_work=int(work),
+                        greedy_cliques=int(objectives.size))
+        if objectives.size:
+            c = int(np.argmax(objectives))  # first of equals, as before
+            sol.selected = members[offsets[c]:offsets[c + 1]].copy()
             sol.u = np.zeros(W.shape[0])
             sol.u[sol.selected] = 1.0 / np.sqrt(len(sol.selected))  # the clique's indicator
-            sol.score = float(g_density)
+            sol.score = float(objectives[c])
+            sol.info["greedy_density"] = float(objectives[c])
             sol.info["chosen"] = "greedy"
         else:
             sol.info["chosen"] = "clipper"
@@ -512,9 +672,9 @@ def _solve_once(W: sp.csr_matrix, cfg: ClipperConfig,
         raise InvalidInputError(f"weights must be square, got {W.shape}")
     if m == 0:
         return ClipperSolution(np.zeros(0, np.int64), np.zeros(0), 0.0, 0, 0, 0, 0.0)
-    if W.nnz and (not np.all(np.isfinite(W.data)) or W.data.min() < 0 or W.data.max() > 1 + 1e-12):
+    if W.nnz and not _weights_valid(W.data):
         raise InvalidInputError("edge weights must be finite and in [0, 1]")
-    if W.diagonal().any():
+    if W.nnz and _has_diagonal(W.indptr, W.indices):
         W = W.copy()
         W.setdiag(0)
         W.eliminate_zeros()

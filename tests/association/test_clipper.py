@@ -203,3 +203,65 @@ def test_planted_clique_found_by_both_d_schedules(schedule):
     W = planted_graph(400, 30, 0.3, rng)
     sol = solve_clipper(W, ClipperConfig(d_schedule=schedule, rescale_u0=schedule == "mean"))
     assert set(sol.selected.tolist()) == set(range(30))
+
+
+def _independent_greedy_best(W: sp.csr_matrix, starts: np.ndarray) -> float:
+    """The old semantics: every start grows its clique in full; the best objective."""
+    from graffmatch.association.clipper import greedy_cliques
+
+    best = 0.0
+    for s in starts:
+        _, obj = greedy_cliques(W, [s])
+        best = max(best, float(obj[0]))
+    return best
+
+
+def test_bounded_greedy_keeps_the_best_clique_of_independent_starts():
+    """Skipping hopeless growths (objective bound) must not lose the best greedy clique."""
+    from graffmatch.association.clipper import _greedy_core, greedy_start_order
+
+    rng = np.random.default_rng(21)
+    for _ in range(15):
+        W = planted_graph(150, int(rng.integers(5, 25)), 0.3, rng)
+        perm = rng.permutation(150)
+        W = sp.csr_matrix(W[perm][:, perm])
+        starts = greedy_start_order(W, 40)
+        _, _, obj, _ = _greedy_core(W.indptr, W.indices, W.data, starts, 0.0, 40,
+                                       np.iinfo(np.int64).max, True, False)
+        assert np.isclose(obj.max(), _independent_greedy_best(W, starts))
+        assert np.all(np.diff(obj) > 0)  # with pruning to the best, each kept clique improves
+
+
+def test_greedy_cliques_are_distinct_cliques_with_their_objective():
+    from graffmatch.association.clipper import clique_density, greedy_cliques, greedy_start_order
+
+    rng = np.random.default_rng(8)
+    W = planted_graph(200, 20, 0.25, rng)
+    cliques, obj = greedy_cliques(W, greedy_start_order(W, 50), max_cliques=10)
+    assert 1 <= len(cliques) <= 10 and len(obj) == len(cliques)
+    best = cliques[int(np.argmax(obj))]
+    assert set(best.tolist()) == set(range(20))  # the planted clique is among them, the densest
+    seen = set()
+    for c, o in zip(cliques, obj, strict=True):
+        k = len(c)
+        assert np.count_nonzero(W[c][:, c].toarray()) == k * (k - 1)
+        assert np.isclose(clique_density(W, c), o)
+        assert tuple(c.tolist()) not in seen
+        seen.add(tuple(c.tolist()))
+    # a lower bound keeps only the cliques above it
+    _, obj_hi = greedy_cliques(W, greedy_start_order(W, 50), lower_bound=float(obj[0]) - 1e-9)
+    assert len(obj_hi) >= 1 and np.all(obj_hi > obj[0] - 1e-9)
+    with pytest.raises(InvalidInputError):
+        greedy_cliques(W, [500])
+
+
+def test_greedy_work_budget_is_respected_and_deterministic():
+    rng = np.random.default_rng(2)
+    W = planted_graph(300, 25, 0.3, rng)
+    cfg = ClipperConfig(greedy_starts=64, greedy_max_work=0.5, greedy_min_work=0)
+    a = solve_clipper(W, cfg)
+    b = solve_clipper(W, cfg)
+    assert np.array_equal(a.selected, b.selected)
+    # the budget stops before the next start once the visits exceed it (a start finishes)
+    assert a.info["greedy_work"] <= 0.5 * W.nnz + 2 * W.shape[0] * 25 + W.nnz
+    assert set(a.selected.tolist()) == set(range(25))
