@@ -26,6 +26,7 @@ _EXPORTS: dict[str, str] = {
     "invert": "graffmatch.geometry.transforms",
     "transform_points": "graffmatch.geometry.transforms",
     "transform_errors": "graffmatch.geometry.transforms",
+    "restore_offsets": "graffmatch.geometry.transforms",
     "graff_distance": "graffmatch.geometry.distance",
     "invariant_distance": "graffmatch.geometry.distance",
     "pairwise_distances": "graffmatch.geometry.distance",
@@ -45,6 +46,8 @@ _EXPORTS: dict[str, str] = {
     "LandmarkExtractor": "graffmatch.lidar.extractor",
     "LandmarkExtractorConfig": "graffmatch.lidar.extractor",
     "read_points": "graffmatch.lidar.io",
+    "read_scan": "graffmatch.lidar.io",
+    "Scan": "graffmatch.lidar.io",
     "read_labels": "graffmatch.lidar.io",
     "write_points": "graffmatch.lidar.io",
     # pipeline
@@ -69,6 +72,7 @@ _EXPORTS: dict[str, str] = {
     "InvalidInputError": "graffmatch.errors",
     "DegenerateGeometryError": "graffmatch.errors",
     "MalformedFileError": "graffmatch.errors",
+    "PrecisionLossWarning": "graffmatch.errors",
 }
 
 __all__ = sorted([*_EXPORTS, "__version__"])

@@ -21,3 +21,8 @@ class DegenerateGeometryError(GraffMatchError):
 
 class MalformedFileError(GraffMatchError, OSError):
     """A file could not be parsed; the message names the file."""
+
+
+class PrecisionLossWarning(UserWarning):
+    """Casting coordinates to float32 moved points by more than the tolerance (far/UTM
+    coordinates read without recentring); read them with ``graffmatch.lidar.io.read_scan``."""

@@ -43,6 +43,38 @@ def invert(T: ArrayLike) -> Array:
     return make_transform(R.T, -R.T @ t)
 
 
+def _origin(o: ArrayLike | None, name: str) -> Array:
+    if o is None:
+        return np.zeros(3)
+    try:
+        v = np.asarray(o, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{name} must be 3 numbers, got {o!r}") from exc
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise InvalidInputError(f"{name} must be 3 finite numbers, got {o!r}")
+    return v
+
+
+def restore_offsets(
+    T_target_source_centered: ArrayLike,
+    origin_source: ArrayLike | None,
+    origin_target: ArrayLike | None,
+) -> Array:
+    """The transform between the original (e.g. UTM) frames of two recentred clouds.
+
+    With ``world = local + origin`` for each cloud (see ``graffmatch.lidar.io.read_scan``) and
+    ``T_c`` mapping local source to local target coordinates,
+    ``T = Trans(origin_target) @ T_c @ Trans(-origin_source)``: the rotation is ``R_c`` and the
+    translation ``t_c + origin_target - R_c @ origin_source``, summed in float64 (the
+    result is exact to ~1e-9 m at 4.6e6 m; ``None`` means a zero origin).
+    """
+    T_c = check_transform(T_target_source_centered, "T_target_source_centered")
+    o_s = _origin(origin_source, "origin_source")
+    o_t = _origin(origin_target, "origin_target")
+    R = T_c[:3, :3]
+    return make_transform(R, T_c[:3, 3] + o_t - R @ o_s)
+
+
 def transform_points(T: ArrayLike, points: ArrayLike) -> Array:
     """Apply T to an (N, 3) array of points."""
     T = np.asarray(T, dtype=float)

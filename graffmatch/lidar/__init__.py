@@ -4,6 +4,7 @@ from graffmatch.lidar.cache import LandmarkCache
 from graffmatch.lidar.extractor import LandmarkExtractor, LandmarkExtractorConfig
 from graffmatch.lidar.ground import GroundConfig
 from graffmatch.lidar.io import (
+    Scan,
     instance_id,
     label_path_for,
     read_bin,
@@ -13,6 +14,8 @@ from graffmatch.lidar.io import (
     read_pcd,
     read_ply,
     read_points,
+    read_scan,
+    resolve_scale,
     semantic_class,
     write_bin,
     write_label,
@@ -31,6 +34,7 @@ __all__ = [
     "LandmarkExtractorConfig",
     "PlaneConfig",
     "PoleConfig",
+    "Scan",
     "instance_id",
     "label_path_for",
     "read_bin",
@@ -40,6 +44,8 @@ __all__ = [
     "read_pcd",
     "read_ply",
     "read_points",
+    "read_scan",
+    "resolve_scale",
     "semantic_class",
     "write_bin",
     "write_label",

@@ -10,8 +10,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.errors import InvalidInputError, MalformedFileError, PrecisionLossWarning
 from graffmatch.lidar import (
+    Scan,
     instance_id,
     label_path_for,
     read_bin,
@@ -19,6 +20,8 @@ from graffmatch.lidar import (
     read_pcd,
     read_ply,
     read_points,
+    read_scan,
+    resolve_scale,
     semantic_class,
     write_bin,
     write_label,
@@ -98,9 +101,12 @@ def test_labels_round_trip_and_split(tmp_path: Path) -> None:
     assert label_path_for("/d/seq/velodyne/000007.bin") == Path("/d/seq/labels/000007.label")
 
 
+# Sensor-frame values: 0, or 1 mm .. 100 km (read_bin rejects files made mostly of others).
+_SENSOR = st.floats(-1e5, 1e5, width=32).filter(lambda v: v == 0 or abs(v) >= 1e-3)
+
+
 @settings(max_examples=25, deadline=None)
-@given(arrays(np.float32, st.tuples(st.integers(0, 40), st.just(4)),
-              elements=st.floats(-1e6, 1e6, width=32)))  # fmt: skip
+@given(arrays(np.float32, st.tuples(st.integers(0, 40), st.just(4)), elements=_SENSOR))
 def test_bin_round_trip_property(tmp_path_factory, pts: np.ndarray) -> None:
     path = tmp_path_factory.mktemp("h") / "s.bin"
     np.testing.assert_array_equal(read_bin(write_bin(path, pts)), pts)
@@ -209,3 +215,183 @@ def test_reads_files_written_by_open3d(tmp_path: Path, rng, name: str) -> None:
     assert o3d.io.write_point_cloud(str(path), pc, write_ascii="ascii" in name)
     back = read_points(path)
     np.testing.assert_allclose(back[:, :3], xyz, rtol=1e-5, atol=1e-5)
+
+
+# ------------------------------------------------------------------------------------------
+# far (UTM) coordinates: recentred in float64, origin kept (issue 12)
+# ------------------------------------------------------------------------------------------
+UTM = np.array([500000.0, 4600000.0, 0.0])
+
+
+def test_real_scans_with_utm_offset_read_back_exactly(shared_data: Path, tmp_path: Path) -> None:
+    """Two KITTI scans + (500000, 4600000, 0) as float64 .npy: read_scan gives them back to the
+    last bit of float64; read_points would move them by ~0.25 m, and says so."""
+    for i in (0, 5):
+        raw = read_bin(shared_data / "kitti00_first6" / "velodyne" / f"{i:06d}.bin")
+        world = raw.astype(np.float64)
+        world[:, :3] += UTM
+        path = tmp_path / f"{i:06d}.npy"
+        np.save(path, world)
+        scan = read_scan(path)
+        assert isinstance(scan, Scan) and scan.points.dtype == np.float32
+        np.testing.assert_array_equal(scan.origin, UTM)
+        np.testing.assert_array_equal(scan.world_points(), world[:, :3])  # exact
+        # The sensor-frame scan itself, up to the float64 rounding of `world` (2^-31 m at 4.6e6).
+        np.testing.assert_allclose(scan.points, raw, rtol=0, atol=2.0**-31)
+        with pytest.warns(PrecisionLossWarning, match=str(path)) as rec:
+            naive = read_points(path)
+        err = np.abs(naive[:, :3].astype(np.float64) - world[:, :3]).max()
+        assert 0.1 < err <= 0.25  # float32 spacing at 4.6e6 m is 0.5 m
+        assert "0.25 m" in str(rec[0].message) and "read_scan" in str(rec[0].message)
+
+
+@pytest.mark.parametrize("fmt", ["npy", "pcd_binary", "pcd_ascii", "ply_binary", "ply_ascii"])
+def test_read_scan_recentres_double_files(tmp_path: Path, rng, fmt: str) -> None:
+    """Any float64 format: world = points + origin within float32 rounding of the *local*
+    coordinates (~1e-5 m), where a plain cast errs by up to 0.25 m."""
+    offset = np.array([512345.678, 5432109.123, 87.6])
+    world = rng.normal(scale=30.0, size=(500, 3)) + offset
+    path = tmp_path / f"c.{fmt.split('_')[0]}"
+    if fmt == "npy":
+        np.save(path, world)
+    elif fmt.startswith("pcd"):
+        head = (f"VERSION 0.7\nFIELDS x y z\nSIZE 8 8 8\nTYPE F F F\nCOUNT 1 1 1\n"
+                f"WIDTH 500\nHEIGHT 1\nPOINTS 500\nDATA {fmt.split('_')[1]}\n").encode()  # fmt: skip
+        body = (world.astype("<f8").tobytes() if fmt.endswith("binary")
+                else "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in world.tolist()).encode())  # fmt: skip
+        path.write_bytes(head + body)
+    else:
+        kind = "binary_little_endian" if fmt.endswith("binary") else "ascii"
+        head = (f"ply\nformat {kind} 1.0\nelement vertex 500\nproperty double x\n"
+                "property double y\nproperty double z\nend_header\n").encode()  # fmt: skip
+        body = (world.astype("<f8").tobytes() if fmt.endswith("binary")
+                else "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in world.tolist()).encode())  # fmt: skip
+        path.write_bytes(head + body)
+    scan = read_scan(path)
+    np.testing.assert_array_equal(scan.origin, np.round(np.median(world, axis=0) / 100) * 100)
+    local = world - scan.origin
+    assert np.abs(local).max() < 250
+    err = np.abs(scan.world_points() - world).max()
+    assert err <= np.abs(local).max() * 2.0**-24 and err < 1e-5
+    with pytest.warns(PrecisionLossWarning):
+        read_points(path)
+
+
+def test_read_scan_keeps_sensor_frames(tmp_path: Path, cloud: np.ndarray) -> None:
+    """Sensor-frame scans are not moved (the extractor's range crop needs the sensor at 0)."""
+    for suffix in (".bin", ".pcd", ".npy"):
+        path = write_points(tmp_path / f"s{suffix}", cloud)
+        scan = read_scan(path)
+        np.testing.assert_array_equal(scan.origin, 0.0)
+        np.testing.assert_array_equal(scan.points, read_points(path))
+        assert not scan.recentred and scan.path == path
+    far = cloud.astype(np.float64)
+    far[:, 0] += 3000.0  # a Livox-like one-sided scan, still in float64 without loss
+    np.save(tmp_path / "f.npy", far)
+    assert not read_scan(tmp_path / "f.npy").recentred
+
+
+def test_read_scan_labels_and_key(tmp_path: Path, cloud: np.ndarray) -> None:
+    path = write_points(tmp_path / "s.bin", cloud)
+    lab = write_label(tmp_path / "s.label", np.arange(len(cloud), dtype=np.uint32))
+    scan = read_scan(path, labels=lab)
+    np.testing.assert_array_equal(scan.labels, np.arange(len(cloud)))
+    with pytest.raises(MalformedFileError, match="labels for a scan"):
+        read_scan(path, labels=write_label(tmp_path / "t.label", np.arange(3, dtype=np.uint32)))
+    np.savez(tmp_path / "two.npz", a=cloud, b=cloud[:5])
+    assert len(read_scan(tmp_path / "two.npz", key="b")) == 5
+    with pytest.raises(InvalidInputError, match="npz"):
+        read_scan(path, key="b")
+
+
+def test_float64_values_beyond_float32_are_malformed(tmp_path: Path) -> None:
+    np.save(tmp_path / "huge.npy", np.array([[1e39, 0, 0], [1, 2, 3]]))
+    for reader in (read_points, read_scan):
+        with pytest.raises(MalformedFileError, match="float32's range") as exc:
+            reader(tmp_path / "huge.npy")
+        _assert_names_file(exc, tmp_path / "huge.npy")
+
+
+# ------------------------------------------------------------------------------------------
+# garbage named .bin (issue 12)
+# ------------------------------------------------------------------------------------------
+def _trim16(data: bytes) -> bytes:
+    return data[: len(data) // 16 * 16]
+
+
+@pytest.mark.parametrize(
+    "content",
+    [
+        pytest.param(
+            lambda rng: "\n".join(
+                f"{x:.4f} {y:.4f} {z:.4f} 0.5" for x, y, z in rng.normal(scale=20, size=(300, 3))
+            ).encode(),
+            id="numbers-as-text",
+        ),
+        pytest.param(
+            lambda rng: b"the quick brown fox jumps over the lazy dog; " * 60, id="prose"
+        ),
+        pytest.param(
+            lambda rng: np.c_[rng.normal(size=(100, 3)) * 1e7, np.zeros(100)].astype("<f4").tobytes(),
+            id="absurd-far",
+        ),
+        pytest.param(
+            lambda rng: np.full((100, 4), np.nan, "<f4").tobytes(), id="all-nan"
+        ),
+        pytest.param(
+            lambda rng: (rng.integers(1, 2**23, size=400, dtype=np.uint32)).astype("<u4").tobytes(),
+            id="denormal",
+        ),
+        pytest.param(lambda rng: rng.bytes(16 * 500), id="random-bytes"),
+    ],
+)
+def test_garbage_bin_is_malformed(tmp_path: Path, rng, content) -> None:
+    path = tmp_path / "scan.bin"
+    path.write_bytes(_trim16(content(rng)))
+    with pytest.raises(MalformedFileError, match="implausible") as exc:
+        read_points(path)
+    _assert_names_file(exc, path)
+    with pytest.raises(MalformedFileError):
+        read_scan(path)
+
+
+def test_bin_with_some_nan_or_zero_rows_still_reads(tmp_path: Path, cloud: np.ndarray) -> None:
+    pts = cloud.copy()
+    pts[:100, :3] = np.nan  # 100 of 257: a minority
+    pts[100:120] = 0.0  # no-return rows some drivers write
+    back = read_points(write_bin(tmp_path / "n.bin", pts))
+    np.testing.assert_array_equal(back[120:], pts[120:])
+    assert np.isnan(back[:100, :3]).all()
+
+
+def test_float64_bin_variant_is_read_with_warning(tmp_path: Path, cloud: np.ndarray) -> None:
+    world = cloud.astype(np.float64)
+    world[:, :3] += UTM
+    path = tmp_path / "d.bin"
+    path.write_bytes(world.astype("<f8").tobytes())
+    with pytest.warns(RuntimeWarning, match="float64"):
+        scan = read_scan(path)
+    np.testing.assert_array_equal(scan.origin, UTM)
+    np.testing.assert_array_equal(scan.world_points(), world[:, :3])
+
+
+# ------------------------------------------------------------------------------------------
+# units (issue 12)
+# ------------------------------------------------------------------------------------------
+def test_scale_converts_integer_centimetres(tmp_path: Path, cloud: np.ndarray) -> None:
+    cm = np.round(cloud[:, :3].astype(np.float64) * 100).astype(np.int32)
+    path = tmp_path / "cm.npy"
+    np.save(path, cm)
+    for scale in (0.01, "cm", "CM "):
+        np.testing.assert_allclose(read_points(path, scale=scale)[:, :3], cm / 100.0, rtol=1e-7)
+        assert read_scan(path, scale=scale).scale == 0.01
+    assert resolve_scale("mm") == 0.001 and resolve_scale(2) == 2.0
+
+
+@pytest.mark.parametrize("bad", [0, -1.0, float("nan"), float("inf"), "furlong", True, None, [1]])
+def test_bad_scale_is_rejected(tmp_path: Path, cloud: np.ndarray, bad) -> None:
+    path = write_points(tmp_path / "s.npy", cloud)
+    with pytest.raises(InvalidInputError, match="scale"):
+        read_points(path, scale=bad)
+    with pytest.raises(InvalidInputError, match="scale"):
+        read_scan(path, scale=bad)
