@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import io
 import json
+import zipfile
+import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
@@ -38,6 +40,89 @@ class LandmarkType(IntEnum):
     PLANE = 2
 
 
+_TYPE_NAMES = {"point": 0, "line": 1, "plane": 2}
+_TYPE_HELP = "use 0 / 'point', 1 / 'line' or 2 / 'plane'"
+
+
+def _one_type(value: object, where: str) -> int:
+    """One landmark type from a code, a name or a LandmarkType; never truncates 1.7 to 1."""
+    if isinstance(value, LandmarkType):
+        return int(value)
+    if isinstance(value, bytes):
+        value = value.decode("ascii", errors="replace")
+    if isinstance(value, str):
+        key = value.strip().lower()
+        if key in _TYPE_NAMES:
+            return _TYPE_NAMES[key]
+        if key in ("0", "1", "2"):
+            return int(key)
+        raise InvalidInputError(f"{where} = {value!r} is not a landmark type; {_TYPE_HELP}")
+    if isinstance(value, (bool, np.bool_)):
+        raise InvalidInputError(
+            f"{where} = {value!r} is a boolean, not a landmark type; {_TYPE_HELP}"
+        )
+    if isinstance(value, (int, np.integer)):
+        if 0 <= int(value) <= 2:
+            return int(value)
+        raise InvalidInputError(f"{where} = {value!r} is not a landmark type code; {_TYPE_HELP}")
+    if isinstance(value, (float, np.floating)):
+        if np.isfinite(value) and float(value).is_integer() and 0 <= value <= 2:
+            return int(value)
+        raise InvalidInputError(
+            f"{where} = {value!r} is not an integer landmark type code; {_TYPE_HELP}"
+        )
+    raise InvalidInputError(f"{where} = {value!r} is not a landmark type; {_TYPE_HELP}")
+
+
+def coerce_types(types: ArrayLike, name: str = "types") -> NDArray[np.int8]:
+    """(n,) int8 type codes from codes, names ('point', 'line', 'plane') or LandmarkTypes.
+
+    Non-integer codes (1.7), unknown codes (257, -1), booleans and unknown names raise
+    :class:`InvalidInputError`; nothing is truncated or wrapped around.
+    """
+    try:
+        arr = np.asarray(types)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{name} must be a sequence of landmark types ({exc})") from exc
+    arr = arr.reshape(-1)
+    kind = arr.dtype.kind
+    if kind in "iu":
+        bad = np.flatnonzero((arr < 0) | (arr > 2))
+        if bad.size:
+            i = int(bad[0])
+            raise InvalidInputError(
+                f"{name}[{i}] = {arr[i].item()!r} is not a landmark type code "
+                f"({bad.size} bad); {_TYPE_HELP}"
+            )
+        return arr.astype(np.int8)
+    if kind == "f":
+        ok = np.isfinite(arr) & (arr >= 0) & (arr <= 2)
+        ok[ok] &= arr[ok] == np.round(arr[ok])
+        bad = np.flatnonzero(~ok)
+        if bad.size:
+            i = int(bad[0])
+            raise InvalidInputError(
+                f"{name}[{i}] = {arr[i].item()!r} is not an integer landmark type code "
+                f"({bad.size} bad); {_TYPE_HELP}"
+            )
+        return arr.astype(np.int8)
+    if kind in "USO":
+        return np.array(
+            [_one_type(v, f"{name}[{i}]") for i, v in enumerate(arr.tolist())], dtype=np.int8
+        ).reshape(-1)
+    if kind == "b":
+        raise InvalidInputError(f"{name} are booleans, not landmark types; {_TYPE_HELP}")
+    raise InvalidInputError(f"{name} has dtype {arr.dtype}, not landmark types; {_TYPE_HELP}")
+
+
+def _float_array(x: ArrayLike, name: str) -> Array:
+    """float64 array, or InvalidInputError naming the argument (never a bare ValueError)."""
+    try:
+        return np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise InvalidInputError(f"{name} must be an array of numbers ({exc})") from exc
+
+
 #: Attributes with a defined meaning (all optional). Others may be added freely.
 KNOWN_ATTRIBUTES = {
     "extent": "lines: length along the direction [m]; planes: area of the support [m^2]",
@@ -50,11 +135,15 @@ KNOWN_ATTRIBUTES = {
 
 
 def _as_unit(v: ArrayLike, name: str) -> Array:
-    v = np.asarray(v, dtype=float).reshape(-1)
+    v = _float_array(v, name).reshape(-1)
     if v.shape != (3,):
         raise InvalidInputError(f"{name} must have 3 components, got {v.shape}")
     if not np.all(np.isfinite(v)):
         raise InvalidInputError(f"{name} contains NaN or Inf")
+    big = np.abs(v).max()
+    if big < 1e-300:
+        raise InvalidInputError(f"{name} must be non-zero")
+    v = v / big  # no overflow in the norm of 1e200-sized vectors
     n = np.linalg.norm(v)
     if n < 1e-12:
         raise InvalidInputError(f"{name} must be non-zero")
@@ -82,31 +171,39 @@ class Landmark:
     attributes: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        basis = np.asarray(self.basis, dtype=float).reshape(3, int(self.kind))
-        anchor = np.asarray(self.anchor, dtype=float).reshape(3)
-        _validate_basis(basis[None], np.array([int(self.kind)]))
+        kind = LandmarkType(_one_type(self.kind, "kind"))
+        basis = _float_array(self.basis, "basis")
+        anchor = _float_array(self.anchor, "anchor")
+        if basis.size != 3 * int(kind):
+            raise InvalidInputError(
+                f"a {kind.name.lower()} basis has {3 * int(kind)} numbers, got shape {basis.shape}"
+            )
+        if anchor.size != 3:
+            raise InvalidInputError(f"anchor must have 3 components, got shape {anchor.shape}")
+        basis = basis.reshape(3, int(kind))
+        anchor = anchor.reshape(3)
+        _validate_basis(basis[None], np.array([int(kind)]))
         if not np.all(np.isfinite(anchor)):
             raise InvalidInputError("anchor contains NaN or Inf")
+        object.__setattr__(self, "kind", kind)
         object.__setattr__(self, "basis", basis)
         object.__setattr__(self, "anchor", anchor)
 
     # ---- constructors -----------------------------------------------------------------
     @classmethod
     def point(cls, p: ArrayLike, **attributes: ArrayLike) -> Landmark:
-        return cls(LandmarkType.POINT, np.zeros((3, 0)), np.asarray(p, float), _attrs(attributes))
+        return cls(LandmarkType.POINT, np.zeros((3, 0)), p, _attrs(attributes))
 
     @classmethod
     def line(cls, point: ArrayLike, direction: ArrayLike, **attributes: ArrayLike) -> Landmark:
         """A line through ``point`` (its anchor) along ``direction``."""
         d = _as_unit(direction, "direction")
-        return cls(LandmarkType.LINE, d[:, None], np.asarray(point, float), _attrs(attributes))
+        return cls(LandmarkType.LINE, d[:, None], point, _attrs(attributes))
 
     @classmethod
     def plane(cls, point: ArrayLike, normal: ArrayLike, **attributes: ArrayLike) -> Landmark:
         """A plane through ``point`` (its anchor) with the given normal."""
-        return cls(
-            LandmarkType.PLANE, plane_basis(normal), np.asarray(point, float), _attrs(attributes)
-        )
+        return cls(LandmarkType.PLANE, plane_basis(normal), point, _attrs(attributes))
 
     @classmethod
     def plane_from_hesse(
@@ -114,8 +211,14 @@ class Landmark:
     ) -> Landmark:
         """Plane n.x = offset; the anchor is projected onto the plane."""
         n = _as_unit(normal, "normal")
-        a = np.asarray(anchor, dtype=float).reshape(3)
-        a = a - (n @ a - float(offset)) * n
+        a = _float_array(anchor, "anchor").reshape(-1)
+        if a.shape != (3,):
+            raise InvalidInputError(f"anchor must have 3 components, got shape {a.shape}")
+        try:
+            d = float(offset)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError(f"offset must be a number, got {offset!r}") from exc
+        a = a - (n @ a - d) * n
         return cls.plane(a, n, **attributes)
 
     # ---- representations --------------------------------------------------------------
@@ -144,7 +247,15 @@ class Landmark:
 
 
 def _attrs(attributes: Mapping[str, ArrayLike]) -> dict[str, np.ndarray]:
-    return {k: np.asarray(v) for k, v in attributes.items() if v is not None}
+    out = {}
+    for k, v in attributes.items():
+        if v is None:
+            continue
+        try:
+            out[k] = np.asarray(v)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError(f"attribute {k!r} is not an array ({exc})") from exc
+    return out
 
 
 def _validate_basis(bases: np.ndarray, types: np.ndarray) -> None:
@@ -201,21 +312,46 @@ class LandmarkSet:
         point_offsets: ArrayLike | None = None,
         validate: bool = True,
     ) -> None:
-        self.types = np.asarray(types, dtype=np.int8).reshape(-1)
+        if not validate:  # internal fast path: arrays that came out of a validated set
+            self.types = np.asarray(types, dtype=np.int8).reshape(-1)
+            self.bases = np.asarray(bases, dtype=np.float64)
+            self.anchors = np.asarray(anchors, dtype=np.float64)
+            self.attributes = {k: np.asarray(v) for k, v in (attributes or {}).items()}
+            self.points = None if points is None else np.asarray(points, dtype=np.float32)
+            self.point_offsets = (
+                None if point_offsets is None else np.asarray(point_offsets, dtype=np.int64)
+            )
+            return
+        self.types = coerce_types(types)
         n = self.types.shape[0]
-        self.bases = np.asarray(bases, dtype=np.float64)
-        self.anchors = np.asarray(anchors, dtype=np.float64)
+        self.bases = _float_array(bases, "bases")
+        self.anchors = _float_array(anchors, "anchors")
         if self.bases.shape == (0,):
             self.bases = self.bases.reshape(0, 3, 2)
         if self.anchors.shape == (0,):
             self.anchors = self.anchors.reshape(0, 3)
-        self.attributes = {k: np.asarray(v) for k, v in (attributes or {}).items()}
-        self.points = None if points is None else np.asarray(points, dtype=np.float32)
-        self.point_offsets = (
-            None if point_offsets is None else np.asarray(point_offsets, dtype=np.int64)
-        )
-        if validate:
-            self._validate(n)
+        if attributes is not None and not isinstance(attributes, Mapping):
+            raise InvalidInputError(
+                f"attributes must be a mapping name -> array, got {type(attributes).__name__}"
+            )
+        self.attributes = _attrs({str(k): v for k, v in (attributes or {}).items()})
+        self.points = None
+        if points is not None:
+            pts = _float_array(points, "points")
+            if pts.ndim != 2 or pts.shape[1] != 3:
+                raise InvalidInputError(f"points must have shape (m, 3), got {pts.shape}")
+            if not np.all(np.isfinite(pts)) or (pts.size and np.abs(pts).max() > 3.0e38):
+                raise InvalidInputError("support points contain NaN/Inf or exceed float32")
+            self.points = pts.astype(np.float32)
+        self.point_offsets = None
+        if point_offsets is not None:
+            off = _float_array(point_offsets, "point_offsets").reshape(-1)
+            if not np.all(np.isfinite(off)) or np.any(off != np.round(off)):
+                raise InvalidInputError("point_offsets must be integers")
+            if off.size and np.abs(off).max() > 2.0**62:
+                raise InvalidInputError("point_offsets are out of range")
+            self.point_offsets = off.astype(np.int64)
+        self._validate(n)
 
     def _validate(self, n: int) -> None:
         if self.bases.shape != (n, 3, 2):
@@ -281,20 +417,27 @@ class LandmarkSet:
         point_offsets: ArrayLike | None = None,
     ) -> LandmarkSet:
         """Vectorised constructor from line directions / plane normals (any length)."""
-        types = np.asarray(types, dtype=np.int8).reshape(-1)
-        dirs = np.asarray(directions, dtype=float).reshape(-1, 3)
+        types = coerce_types(types)
+        dirs = _float_array(directions, "directions")
         n = len(types)
-        if dirs.shape[0] != n:
-            raise InvalidInputError("directions must have one row per landmark")
+        if dirs.size != 3 * n or (dirs.ndim > 1 and dirs.shape[-1] != 3):
+            raise InvalidInputError(
+                f"directions must have shape ({n}, 3) (one row per landmark), got {dirs.shape}"
+            )
+        dirs = dirs.reshape(n, 3)
         if not np.all(np.isfinite(dirs)):
             raise InvalidInputError("directions contain NaN or Inf")
-        norms = np.linalg.norm(dirs, axis=1)
         needs = types > 0
-        if np.any(norms[needs] < 1e-12):
+        big = np.abs(dirs).max(axis=1) if n else np.zeros(0)
+        if np.any(big[needs] < 1e-300):
             raise InvalidInputError("line directions and plane normals must be non-zero")
         bases = np.zeros((n, 3, 2))
         u = np.zeros_like(dirs)
-        u[needs] = dirs[needs] / norms[needs, None]
+        u[needs] = dirs[needs] / big[needs, None]  # scale first: no overflow in the norm
+        norms = np.linalg.norm(u, axis=1)
+        if np.any(norms[needs] < 1e-12):
+            raise InvalidInputError("line directions and plane normals must be non-zero")
+        u[needs] = u[needs] / norms[needs, None]
         lines = types == LandmarkType.LINE
         bases[lines, :, 0] = u[lines]
         planes = np.flatnonzero(types == LandmarkType.PLANE)
@@ -393,11 +536,11 @@ class LandmarkSet:
             "planes": int(np.sum(self.types == LandmarkType.PLANE)),
         }
 
-    def of_type(self, *kinds: LandmarkType | int) -> LandmarkSet:
-        return self[np.flatnonzero(np.isin(self.types, [int(k) for k in kinds]))]
+    def of_type(self, *kinds: LandmarkType | int | str) -> LandmarkSet:
+        return self[np.flatnonzero(np.isin(self.types, coerce_types(list(kinds), "kinds")))]
 
-    def indices_of_type(self, kind: LandmarkType | int) -> NDArray[np.intp]:
-        return np.flatnonzero(self.types == int(kind))
+    def indices_of_type(self, kind: LandmarkType | int | str) -> NDArray[np.intp]:
+        return np.flatnonzero(self.types == _one_type(kind, "kind"))
 
     def require_nonempty(self, what: str = "landmark set") -> LandmarkSet:
         if len(self) == 0:
@@ -509,15 +652,26 @@ class LandmarkSet:
                 offs = z["point_offsets"] if "point_offsets" in z.files else None
         except MalformedFileError:
             raise
-        except (OSError, ValueError, KeyError, EOFError) as exc:
+        except (
+            OSError, ValueError, KeyError, EOFError, TypeError, SyntaxError,
+            zipfile.BadZipFile, zlib.error,
+        ) as exc:  # fmt: skip
             raise MalformedFileError(f"{path}: cannot read landmark file ({exc})") from exc
-        n = len(types)
-        bases = np.zeros((n, 3, 2))
-        bases[:, :, 0] = tangents
-        planes = types == LandmarkType.PLANE
-        bases[planes, :, 1] = np.cross(normals[planes], tangents[planes])
-        attrs = {k: (v.astype(np.float64) if v.dtype.kind == "f" else v) for k, v in attrs.items()}
-        return cls(types, bases, anchors, attrs, pts, offs)
+        try:
+            types = coerce_types(types)
+            n = len(types)
+            normals = np.asarray(normals, dtype=np.float64).reshape(n, 3)
+            tangents = np.asarray(tangents, dtype=np.float64).reshape(n, 3)
+            bases = np.zeros((n, 3, 2))
+            bases[:, :, 0] = tangents
+            planes = types == LandmarkType.PLANE
+            bases[planes, :, 1] = np.cross(normals[planes], tangents[planes])
+            attrs = {
+                k: (v.astype(np.float64) if v.dtype.kind == "f" else v) for k, v in attrs.items()
+            }
+            return cls(types, bases, anchors, attrs, pts, offs)
+        except (InvalidInputError, ValueError, TypeError, IndexError) as exc:
+            raise MalformedFileError(f"{path}: invalid landmark file ({exc})") from exc
 
     def approx_equal(self, other: LandmarkSet, atol: float = 1e-9) -> bool:
         """Same types, same subspaces (A A^T) and same anchors within atol."""
@@ -525,7 +679,9 @@ class LandmarkSet:
             return False
         P1 = np.einsum("nik,njk->nij", self.bases, self.bases)
         P2 = np.einsum("nik,njk->nij", other.bases, other.bases)
-        return bool(np.allclose(P1, P2, atol=atol) and np.allclose(self.anchors, other.anchors, atol=atol))
+        return bool(
+            np.allclose(P1, P2, atol=atol) and np.allclose(self.anchors, other.anchors, atol=atol)
+        )
 
 
 def fit_landmark(points: ArrayLike, kind: LandmarkType | int) -> tuple[Landmark, Array]:
@@ -534,8 +690,11 @@ def fit_landmark(points: ArrayLike, kind: LandmarkType | int) -> tuple[Landmark,
     Returns the landmark (anchor = centroid, plus ``support``, ``rms`` and ``extent`` attributes)
     and the per-point orthogonal residuals [m].
     """
-    P = np.asarray(points, dtype=float).reshape(-1, 3)
-    kind = LandmarkType(int(kind))
+    P = _float_array(points, "points")
+    if P.size % 3:
+        raise InvalidInputError(f"points must have shape (N, 3), got {P.shape}")
+    P = P.reshape(-1, 3)
+    kind = LandmarkType(_one_type(kind, "kind"))
     if not np.all(np.isfinite(P)):
         raise InvalidInputError("points contain NaN or Inf")
     need = int(kind) + 1

@@ -110,3 +110,93 @@ def test_transform_rejects_non_rigid(rng):
     T = make_transform(np.diag([1, 1, 2.0]), [0, 0, 0])
     with pytest.raises(InvalidInputError):
         ls.transform(T)
+
+
+# ------------------------------------------------------------------------------------------
+# landmark type codes (issue 12): no truncation, no wrap-around, names accepted
+# ------------------------------------------------------------------------------------------
+_DIRS = np.array([[1.0, 0, 0], [0, 0, 1]])
+_ANCH = np.array([[0.0, 0, 0], [1, 2, 3]])
+
+
+@pytest.mark.parametrize(
+    "types",
+    [[1, 2], ["line", "plane"], ["LINE", " Plane "], [b"line", b"plane"],
+     [LandmarkType.LINE, LandmarkType.PLANE], [1.0, 2.0], np.array([1, 2], np.uint64),
+     ["1", "2"], np.array(["line", 2], dtype=object)],
+)  # fmt: skip
+def test_type_names_and_integral_codes_are_accepted(types):
+    ls = LandmarkSet.from_arrays(types, _DIRS, _ANCH)
+    np.testing.assert_array_equal(ls.types, [1, 2])
+    assert ls.types.dtype == np.int8
+    again = LandmarkSet(types, ls.bases, ls.anchors)
+    np.testing.assert_array_equal(again.types, [1, 2])
+
+
+@pytest.mark.parametrize(
+    "types, match",
+    [([1.7, 2], "1.7"), ([1, 2.2], "2.2"), ([257, 1], "257"), ([-1, 1], "-1"),
+     ([3, 1], "3"), (["line", "cylinder"], "cylinder"), ([True, False], "boolean"),
+     ([np.nan, 1], "nan"), ([1e300, 1], "1e\\+300"), ([2**70, 1], "not a landmark type"),
+     ([1 + 1j, 1], "complex"), ([None, 1], "None")],
+)  # fmt: skip
+def test_bad_type_codes_raise_invalid_input(types, match):
+    for make in (
+        lambda: LandmarkSet.from_arrays(types, _DIRS, _ANCH),
+        lambda: LandmarkSet(types, np.zeros((2, 3, 2)), _ANCH),
+    ):
+        with pytest.raises(InvalidInputError, match=match):
+            make()
+
+
+def test_single_landmark_kind_is_checked():
+    assert Landmark("line", [[0], [0], [1]], [0, 0, 0]).kind is LandmarkType.LINE
+    with pytest.raises(InvalidInputError, match="1.7"):
+        Landmark(1.7, [[0], [0], [1]], [0, 0, 0])
+    with pytest.raises(InvalidInputError, match="basis"):
+        Landmark(LandmarkType.PLANE, [[0], [0], [1]], [0, 0, 0])
+    with pytest.raises(InvalidInputError, match="1.5"):
+        fit_landmark(np.random.default_rng(0).normal(size=(10, 3)), 1.5)
+    lm, _ = fit_landmark(np.c_[np.arange(5.0), np.zeros(5), np.zeros(5)], "line")
+    assert lm.kind is LandmarkType.LINE
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda: LandmarkSet.from_arrays([1], [["a", "b", "c"]], [[0, 0, 0]]),
+        lambda: LandmarkSet.from_arrays([1, 2], [[1, 0, 0]], _ANCH),
+        lambda: LandmarkSet.from_arrays([1], [1, 0], [[0, 0, 0]]),
+        lambda: LandmarkSet.from_arrays([1], [[1e308, 1e308, 0]], [[0, 0, "x"]]),
+        lambda: LandmarkSet.from_arrays([1], [[1, 0, 0]], [[0, 0]]),
+        lambda: LandmarkSet.from_arrays([1], [[1, 0, 0]], [[0, 0, 0]], {"a": [1, 2]}),
+        lambda: LandmarkSet.from_arrays([1], [[1, 0, 0]], [[0, 0, 0]], [1, 2]),
+        lambda: LandmarkSet.from_arrays([1], [[1, 0, 0]], [[0, 0, 0]], None, [[0, 0]], [0, 1]),
+        lambda: LandmarkSet.from_arrays([1], [[1, 0, 0]], [[0, 0, 0]], None, [[0, 0, 0]], [0.5, 1]),
+        lambda: LandmarkSet.from_arrays([1], [[1, 0, 0]], [[0, 0, 0]], None, [[np.inf, 0, 0]], [0, 1]),
+        lambda: LandmarkSet.from_arrays([1], [[1, 0, 0]], [[0, 0, 0]], None, [[0, 0, 0]], [0, 2**80]),
+        lambda: LandmarkSet([1], [[[1, 0], [0, 0]]], [[0, 0, 0]]),
+        lambda: Landmark.line([0, 0], [1, 0, 0]),
+        lambda: Landmark.plane(["x", 0, 0], [0, 0, 1]),
+        lambda: Landmark.plane_from_hesse([0, 0, 1], "d", [0, 0, 0]),
+    ],
+)
+def test_malformed_arrays_raise_invalid_input_only(call):
+    with pytest.raises(InvalidInputError):
+        call()
+
+
+def test_huge_directions_are_normalised_without_overflow():
+    ls = LandmarkSet.from_arrays([1, 2], [[1e300, 1e300, 0], [0, 0, -1e-200]], _ANCH)
+    np.testing.assert_allclose(ls.directions, [[2**-0.5, 2**-0.5, 0], [0, 0, -1]], atol=1e-15)
+
+
+def test_load_rejects_invalid_content(tmp_path):
+    path = tmp_path / "lm.npz"
+    np.savez(path, types=np.array([1.5]), directions=np.zeros((1, 3)), tangents=np.zeros((1, 3)),
+             anchors=np.zeros((1, 3)), meta=np.array('{"format": "graffmatch-landmarks"}'))  # fmt: skip
+    with pytest.raises(MalformedFileError, match="lm.npz"):
+        LandmarkSet.load(path)
+    path.write_bytes(b"PK\x03\x04" + b"\x00" * 60)
+    with pytest.raises(MalformedFileError, match="lm.npz"):
+        LandmarkSet.load(path)
