@@ -30,6 +30,63 @@ from graffmatch.lidar.poles import PoleConfig, PoleResult, poles_geometric, pole
 
 Array = NDArray[np.float64]
 
+#: A cloud spanning more than this [m] (1st-99th percentile, per axis) is no single LiDAR scan
+#: in metres: ranges end at ~100-300 m. It is taken as a scan in other units (see units_hint).
+UNITS_EXTENT_LIMIT = 2000.0
+
+#: Plausible span of one scan in metres, used to say which unit an oversized cloud is in.
+PLAUSIBLE_SPAN = (10.0, 400.0)
+
+#: Singular-value ratio s_k / s_0 of the centred cloud below which it is degenerate: rank < 2
+#: (collinear) admits no plane, so ground and planar patches are skipped (Open3D's patch
+#: detector and hulls, Qhull inside, are never fed such sets); a plane needs s_1/s_0 above it.
+DEGENERATE_RATIO = 1e-3
+
+
+def units_hint(extent: float) -> str | None:
+    """Which unit a cloud of this span [file units] is probably in, as a sentence; None if it
+    could be metres. Both candidates are named when both give a plausible scan size."""
+    if not np.isfinite(extent) or extent <= UNITS_EXTENT_LIMIT:
+        return None
+    lo, hi = PLAUSIBLE_SPAN
+    cands = [
+        (name, factor)
+        for name, factor in (("centimetres", 0.01), ("millimetres", 0.001))
+        if lo <= extent * factor <= hi
+    ]
+    if not cands:
+        return (
+            f"extent {extent:.3g} m is far too large for one scan in metres (wrong units?); "
+            "pass --scale / scale= with the factor to metres"
+        )
+    what = " or ".join(f"{name} ({extent * f:.0f} m)" for name, f in cands)
+    flags = " or ".join(f"{f:g}" for _, f in cands)
+    return f"extent {extent:.0f} m suggests {what}; pass --scale {flags} / scale={cands[0][1]:g}"
+
+
+def robust_extent(P: Array) -> float:
+    """Largest 1st-99th percentile span over the axes (a few outliers do not count) [m]."""
+    if P.shape[0] == 0:
+        return 0.0
+    sample = P[:: max(1, P.shape[0] // 20000)]
+    lo, hi = np.percentile(sample, [1.0, 99.0], axis=0)
+    return float(np.max(hi - lo))
+
+
+def degeneracy(P: Array) -> Literal["point", "line", "plane", "volume"]:
+    """Rank of the (sub-sampled, centred) cloud judged with :data:`DEGENERATE_RATIO`."""
+    sample = P[:: max(1, P.shape[0] // 4096)]
+    Q = sample - sample.mean(axis=0)
+    s = np.linalg.svd(Q, compute_uv=False)
+    if s.size == 0 or s[0] <= 0:
+        return "point"
+    r = s / s[0]
+    if r.size < 2 or r[1] <= DEGENERATE_RATIO:
+        return "line"
+    if r.size < 3 or r[2] <= DEGENERATE_RATIO:
+        return "plane"
+    return "volume"
+
 
 class LandmarkExtractorConfig(BaseModel):
     """Every threshold of the front end, nested by stage (defaults tuned on KITTI HDL-64E)."""
@@ -102,7 +159,10 @@ class LandmarkExtractor:
     def _validate(
         self, points: ArrayLike, labels: ArrayLike | None
     ) -> tuple[Array, NDArray | None, Array]:
-        arr = np.asarray(points)
+        try:
+            arr = np.asarray(points)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError(f"points must be an (N, 3) or (N, 4+) array ({exc})") from exc
         if arr.ndim != 2 or arr.shape[1] < 3:
             raise InvalidInputError(f"points must have shape (N, 3) or (N, 4+), got {arr.shape}")
         if arr.dtype.kind not in "fiu":
@@ -110,7 +170,10 @@ class LandmarkExtractor:
         P = arr[:, :3].astype(np.float64)
         lab = None
         if labels is not None:
-            lab = np.asarray(labels).reshape(-1)
+            try:
+                lab = np.asarray(labels).reshape(-1)
+            except (TypeError, ValueError) as exc:
+                raise InvalidInputError(f"labels must be an integer array ({exc})") from exc
             if lab.shape[0] != P.shape[0]:
                 raise InvalidInputError(f"{lab.shape[0]} labels for {P.shape[0]} points")
             if lab.dtype.kind not in "iu":
@@ -128,9 +191,15 @@ class LandmarkExtractor:
             lab = None if lab is None else lab[finite]
         offset = np.zeros(3)
         cfg = self.config
+        self._n_finite = int(P.shape[0])
+        self._extent = 0.0
+        if P.shape[0] and float(np.abs(P).max()) > UNITS_EXTENT_LIMIT:
+            self._extent = robust_extent(P)
         if P.shape[0] and float(np.abs(P).max()) > cfg.recenter_distance:
             med = np.median(P, axis=0)
-            if np.linalg.norm(med) > cfg.recenter_distance:
+            # Far away *and* compact (UTM, map frames): a cloud wider than its distance to the
+            # origin is a sensor frame in other units (mm), which the range crop must see.
+            if np.linalg.norm(med) > cfg.recenter_distance and self._extent < np.linalg.norm(med):
                 offset = np.round(med, 0)
                 P = P - offset
         r = np.sqrt(P[:, 0] ** 2 + P[:, 1] ** 2 + P[:, 2] ** 2)
@@ -166,12 +235,22 @@ class LandmarkExtractor:
         self.last_timings = timings
         self.last_cpu_timings = cpu
         self.last_info = {"n_points": int(P.shape[0]), "pole_mode": mode}
+        hint = None if np.any(offset) else units_hint(self._extent)
+        self.last_info["units_hint"] = hint
         if P.shape[0] < cfg.min_points:
-            warnings.warn(
-                f"only {P.shape[0]} valid points (< min_points={cfg.min_points}); no landmarks",
-                RuntimeWarning,
-                stacklevel=2,
-            )
+            if hint is not None:
+                msg = f"{self._n_finite} finite points, {P.shape[0]} in range: {hint}; no landmarks"
+            elif self._n_finite >= cfg.min_points:
+                msg = (
+                    f"only {P.shape[0]} of {self._n_finite} finite points lie within "
+                    f"[min_range, max_range] = [{cfg.min_range:g}, {cfg.max_range}] m of the "
+                    f"sensor (< min_points={cfg.min_points}); no landmarks"
+                )
+            else:
+                msg = (
+                    f"only {P.shape[0]} valid points (< min_points={cfg.min_points}); no landmarks"
+                )
+            warnings.warn(msg, RuntimeWarning, stacklevel=2)
             return LandmarkSet.empty()
         sample = P[:: max(1, P.shape[0] // 4096)]  # the extent test needs no precision
         extent = max(float(np.ptp(sample[:, j])) for j in range(3))
@@ -183,9 +262,14 @@ class LandmarkExtractor:
             )
             return LandmarkSet.empty()
 
+        # Collinear clouds (rank < 2) hold no plane: Open3D (Qhull inside) is never fed them.
+        shape = degeneracy(P)
+        self.last_info["degenerate"] = None if shape == "volume" else shape
+        planar_ok = shape not in ("point", "line")
+
         t, c = time.perf_counter(), time.process_time()
         gcfg = cfg.ground
-        if gcfg.enabled:
+        if gcfg.enabled and planar_ok:
             ground = segment_ground(P, gcfg)
             is_ground, height = ground.is_ground, ground.height
         else:
@@ -208,7 +292,7 @@ class LandmarkExtractor:
 
         t, c = time.perf_counter(), time.process_time()
         planes = None
-        if cfg.planes.enabled:
+        if cfg.planes.enabled and planar_ok:
             keep = ~is_ground
             if cfg.planes.max_range is not None:
                 keep &= P[:, 0] ** 2 + P[:, 1] ** 2 <= cfg.planes.max_range**2
@@ -221,7 +305,11 @@ class LandmarkExtractor:
         t, c = time.perf_counter(), time.process_time()
         parts: list[dict] = []
         cap = cfg.max_points_per_landmark
-        if ground is not None and ground.normal is not None:
+        ground_ok = (
+            ground is not None and ground.normal is not None and ground.plane_inliers.size >= 3
+        )
+        if ground_ok:
+            assert ground is not None
             sup = ground.plane_inliers
             gpts = P[sup]
             # PCA box of the ground support, in the plane.
@@ -230,6 +318,10 @@ class LandmarkExtractor:
             uv = q @ Vt[:2].T
             box = np.array([np.ptp(uv[:, 0]), np.ptp(uv[:, 1])])
             take = np.linspace(0, sup.size - 1, min(cap, sup.size)).astype(np.int64)
+            # A "ground" whose support is a strip (a kerb, a collinear cloud) fixes no normal.
+            ground_ok = bool(box.min() > max(cfg.min_extent, DEGENERATE_RATIO * box.max()))
+        if ground_ok:
+            assert ground is not None and ground.normal is not None
             parts.append(
                 {
                     "type": LandmarkType.PLANE,
@@ -308,11 +400,14 @@ class LandmarkExtractor:
                 "n_poles": 0 if poles is None else len(poles),
                 "n_planes": 0 if planes is None else len(planes),
                 "n_patches": 0 if planes is None else planes.n_patches,
-                "ground": bool(ground is not None and ground.normal is not None),
+                "ground": bool(ground_ok),
             }
         )
         if len(out) == 0:
+            why = f" ({hint})" if hint else ""
+            if shape in ("point", "line"):
+                why = f" (the cloud is degenerate: all points lie near one {shape})"
             warnings.warn(
-                "no pole or plane landmark found in this scan", RuntimeWarning, stacklevel=2
+                f"no pole or plane landmark found in this scan{why}", RuntimeWarning, stacklevel=2
             )
         return out

@@ -1,0 +1,100 @@
+"""Extractor guards (issue 12): degenerate clouds never reach Open3D/Qhull, and clouds in the
+wrong unit get a message that names the unit."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from graffmatch.errors import GraffMatchError
+from graffmatch.geometry.landmarks import LandmarkSet
+from graffmatch.lidar.extractor import LandmarkExtractor, degeneracy, units_hint
+from tests.lidar.scene import make_scene
+
+
+def _degenerate_clouds() -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(0)
+    n = 6000
+    t = np.linspace(0, 10, n)
+    z = np.zeros(n)
+    return {
+        # the issue's example (seeded)
+        "collinear+1e-6": np.c_[t, z, z] + 1e-6 * rng.random((n, 3)),
+        "collinear-exact": np.c_[t + 3, z, z],
+        "collinear-diagonal": np.c_[t + 3, t, 0.3 * t],
+        "collinear-far": np.c_[t + 500000.0, z + 4600000.0, z],
+        "planar-exact": np.c_[rng.uniform(-30, 30, (n, 2)), z - 1.7],
+        "planar-vertical": np.c_[rng.uniform(3, 30, n), z + 5, rng.uniform(-2, 5, n)],
+        "one-point-repeated": np.tile([[5.0, 5.0, 0.0]], (n, 1)),
+        "two-points": np.r_[np.tile([[5.0, 5.0, 0]], (n // 2, 1)), np.tile([[6.0, 5, 3]], (n // 2, 1))],
+        "three-points": np.array([[3.0, 0, 0], [0, 4, 0], [0, 0, 5]]),
+    }  # fmt: skip
+
+
+@pytest.mark.parametrize("name", list(_degenerate_clouds()))
+def test_degenerate_clouds_are_quiet_and_typed(name: str, capfd) -> None:
+    cloud = _degenerate_clouds()[name]
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        try:
+            out = LandmarkExtractor().extract(cloud)
+        except GraffMatchError:
+            out = None
+    err = capfd.readouterr().err
+    assert err == "", f"stderr not clean for {name}: {err[:300]!r}"
+    assert out is None or isinstance(out, LandmarkSet)
+    if out is not None:
+        assert np.isfinite(out.anchors).all() and np.isfinite(out.bases).all()
+    if name.startswith("collinear") and "far" not in name:
+        # No plane through a line: no ground, no planar patch, a message that says why.
+        assert out is not None and out.counts()["planes"] == 0
+        assert any("degenerate" in str(w.message) for w in rec)
+
+
+def test_degeneracy_ranks() -> None:
+    clouds = _degenerate_clouds()
+    assert degeneracy(clouds["collinear+1e-6"]) == "line"
+    assert degeneracy(clouds["planar-exact"]) == "plane"
+    assert degeneracy(clouds["one-point-repeated"]) == "point"
+    assert degeneracy(make_scene(seed=0).points[:, :3].astype(float)) == "volume"
+
+
+def test_scene_still_yields_ground_walls_and_poles() -> None:
+    """The guards do not touch a normal scan (same counts as the scene's ground truth)."""
+    scene = make_scene(seed=0)
+    out = LandmarkExtractor().extract(scene.points)
+    assert out.counts()["planes"] >= len(scene.walls)  # walls + ground
+    assert out.counts()["lines"] >= 1
+
+
+@pytest.mark.parametrize("factor,unit,flag", [(100, "centimetres", "0.01"), (1000, "millimetres", "0.001")])  # fmt: skip
+def test_integer_cloud_in_wrong_units_names_the_unit(factor: int, unit: str, flag: str) -> None:
+    scene = make_scene(seed=0)
+    ints = np.round(scene.points[:, :3].astype(np.float64) * factor).astype(np.int64)
+    with pytest.warns(RuntimeWarning) as rec:
+        out = LandmarkExtractor().extract(ints)
+    assert len(out) == 0
+    msg = " ".join(str(w.message) for w in rec)
+    assert unit in msg and f"scale={flag}" in msg and f"--scale {flag}" in msg
+    assert "only 0 valid points" not in msg
+    # ... and the suggested factor recovers the landmarks of the metric scan.
+    fixed = LandmarkExtractor().extract(ints * float(flag))
+    assert fixed.counts() == LandmarkExtractor().extract(scene.points).counts()
+
+
+def test_units_hint_boundaries() -> None:
+    assert units_hint(150.0) is None and units_hint(2000.0) is None
+    assert "centimetres (40 m)" in units_hint(4000.0)
+    both = units_hint(30000.0)
+    assert "centimetres (300 m)" in both and "millimetres (30 m)" in both
+    assert "millimetres (160 m)" in units_hint(160000.0)
+    assert "far too large" in units_hint(1e9)
+
+
+def test_out_of_range_message_counts_points(rng) -> None:
+    """Points all beyond max_range in metres: the message says how many were cropped."""
+    far = np.c_[rng.uniform(100, 200, (500, 2)), rng.uniform(-2, 2, 500)]
+    with pytest.warns(RuntimeWarning, match="only 0 of 500 finite points lie within"):
+        LandmarkExtractor().extract(far)
