@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import io
 import json
+import tokenize
 import zipfile
 import zlib
 from collections.abc import Iterable, Mapping, Sequence
@@ -654,7 +655,7 @@ class LandmarkSet:
             raise
         except (
             OSError, ValueError, KeyError, EOFError, TypeError, SyntaxError,
-            zipfile.BadZipFile, zlib.error,
+            zipfile.BadZipFile, zlib.error, tokenize.TokenError, NotImplementedError,
         ) as exc:  # fmt: skip
             raise MalformedFileError(f"{path}: cannot read landmark file ({exc})") from exc
         try:

@@ -18,6 +18,7 @@ recentre: when the cast moves a point by more than :data:`PRECISION_TOLERANCE` i
 
 from __future__ import annotations
 
+import tokenize
 import warnings
 import zipfile
 import zlib
@@ -86,7 +87,7 @@ UNITS = {"m": 1.0, "dm": 0.1, "cm": 0.01, "mm": 0.001, "km": 1000.0}
 #: What np.load raises on a corrupt .npy/.npz (a broken zip, a bad header, short data).
 _NPY_ERRORS = (
     OSError, ValueError, EOFError, KeyError, TypeError, SyntaxError, zipfile.BadZipFile,
-    zlib.error,
+    zlib.error, tokenize.TokenError, NotImplementedError,
 )  # fmt: skip
 
 _F32_MAX = float(np.finfo(np.float32).max)
