@@ -35,10 +35,10 @@ def test_all_to_all_graph_equals_bruteforce(seed):
     assert np.array_equal(g.associations, all_to_all(sc.source.types, sc.target.types))
     assert g.m == count_all_to_all(sc.source.types, sc.target.types)
     W = _brute(Di, Dj, g.associations, 0.2, 0.05)
-    assert np.allclose(g.weights.toarray(), W, atol=1e-12)
+    assert np.allclose(g.weights.toarray(), W, atol=1e-7)  # float32 weights
     # explicit list path gives the same graph
     g2 = build_consistency_graph(Di, Dj, associations=g.associations)
-    assert np.allclose(g2.weights.toarray(), W, atol=1e-12)
+    assert np.allclose(g2.weights.toarray(), W, atol=1e-7)
 
 
 def test_one_to_one_and_true_matches_are_connected():
