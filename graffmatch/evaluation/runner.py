@@ -6,6 +6,10 @@ driver writes every finished record *at once* with an atomic write (temporary fi
 ``os.replace``), so killing a worker or the driver loses no finished result, and a rerun skips
 what is on disk and computes only the rest.
 
+Records and the results folder are defined in :mod:`~graffmatch.evaluation.records`, the
+worker side in :mod:`~graffmatch.evaluation.tasks`, comparisons in
+:mod:`~graffmatch.evaluation.compare`; their public names stay importable from here.
+
 Layout of a results folder::
 
     config.json                 the exact configuration of the last invocation
@@ -24,443 +28,90 @@ best a landmark-only registration can do and the first column of the error heatm
 
 from __future__ import annotations
 
-import functools
-import hashlib
 import json
 import os
 import platform
-import re
 import subprocess
-import tempfile
 import time
-import traceback
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
 
-from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation import metrics as M
+from graffmatch.evaluation.compare import COMPARE_METRICS, compare_runs, format_comparison
 from graffmatch.evaluation.executors import Executor, make_executor
-from graffmatch.geometry.landmarks import LandmarkSet
+from graffmatch.evaluation.records import (
+    DEFAULT_RHO_VALUES,
+    GT_METHOD,
+    RECORD_VERSION,
+    RHO_METHOD,
+    StudyConfig,
+    atomic_write_json,
+    load_config,
+    load_records,
+    pair_fingerprint,
+    read_record,
+    record_path,
+    record_without_timings,
+    slug,
+    task_key,
+)
+from graffmatch.evaluation.tasks import (
+    EvaluationMethod,
+    LoopClosurePair,
+    PairRef,
+    Task,
+    _dataset_pairs,
+    _jsonable_info,
+    _registry_method,
+    execute_task,
+    method_kind,
+    parse_method_spec,
+    rho_spec,
+)
 
-GT_METHOD = "GT-matches"
-RECORD_VERSION = 1
-DEFAULT_RHO_VALUES = (5.0, 10.0, 20.0, 40.0, 80.0, 160.0)
-RHO_METHOD = "GraffMatch"
+# Names that lived here before records/tasks/compare were split out stay importable.
+__all__ = [
+    "COMPARE_METRICS",
+    "DEFAULT_RHO_VALUES",
+    "GT_METHOD",
+    "QUICK_PAIRS_PER_CASE",
+    "QUICK_RHO_PAIRS",
+    "QUICK_SKIP_METHODS",
+    "RECORD_VERSION",
+    "RHO_METHOD",
+    "EvaluationMethod",
+    "LoopClosurePair",
+    "PairRef",
+    "StudyConfig",
+    "Task",
+    "atomic_write_json",
+    "centroid_distance_stats",
+    "compare_runs",
+    "default_methods",
+    "execute_task",
+    "format_comparison",
+    "load_config",
+    "load_records",
+    "method_kind",
+    "pair_fingerprint",
+    "parse_method_spec",
+    "record_path",
+    "record_without_timings",
+    "rho_spec",
+    "run_study",
+    "slug",
+]
 
 #: Point methods skipped by ``quick=True`` (each takes seconds per pair on full scans).
 QUICK_SKIP_METHODS = ("FPFH+RANSAC", "KISS-Matcher", "ScanContext+ICP")
 #: Pairs per case and rho-study pairs per suite of ``quick=True``.
 QUICK_PAIRS_PER_CASE = 3
 QUICK_RHO_PAIRS = 4
-
-
-# ----------------------------------------------------------------------------------------------
-# inputs
-# ----------------------------------------------------------------------------------------------
-@runtime_checkable
-class LoopClosurePair(Protocol):
-    """What the runner needs of a pair (``LoopClosureDataset`` pairs satisfy it)."""
-
-    source: LandmarkSet
-    target: LandmarkSet
-    T_target_source: NDArray[np.float64]
-    true_matches: NDArray[np.intp]
-    case: int
-
-
-@runtime_checkable
-class EvaluationMethod(Protocol):
-    """A method given as an object instead of a registry name (custom methods, tests).
-
-    It must be picklable (a module-level class) so that it can travel to workers, and return an
-    object with ``T_target_source`` (4x4 or None), ``associations`` (k, 2), ``timings`` (dict),
-    ``valid`` and ``info``.
-    """
-
-    name: str
-    kind: str  # "landmark" or "point"
-
-    def __call__(self, pair: Any) -> Any: ...
-
-
-class StudyConfig(BaseModel):
-    """Everything that determines the records of a study (written to ``config.json``)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    methods: list[str] = Field(
-        default_factory=list,
-        description="Method names in column order; GT-matches is always added first.",
-    )
-    tau_d_deg: float = Field(
-        M.DEFAULT_TAU_D_DEG, gt=0, description="Inlier threshold on GT-aligned d_Graff [deg]."
-    )
-    rho_eval: float = Field(
-        M.DEFAULT_RHO, gt=0, description="rho of the invariant d_Graff used for the inlier test."
-    )
-    max_rotation_deg: float = Field(
-        M.DEFAULT_MAX_ROTATION_DEG, gt=0, description="Success threshold on rotation error [deg]."
-    )
-    max_translation_m: float = Field(
-        M.DEFAULT_MAX_TRANSLATION_M, gt=0, description="Success threshold on translation [m]."
-    )
-    max_pairs_per_case: int | None = Field(
-        None, ge=1, description="Evenly spaced subset of at most this many pairs per case."
-    )
-    rho_values: list[float] = Field(
-        default_factory=lambda: list(DEFAULT_RHO_VALUES),
-        description="rho values of the GraffMatch sensitivity study (empty: no study).",
-    )
-    rho_pairs_per_suite: int = Field(
-        24, ge=0, description="Pairs per suite (evenly spaced) used for the rho study."
-    )
-    retry_errors: bool = Field(
-        False, description="Rerun tasks whose saved record says the method raised."
-    )
-
-
-@dataclass(frozen=True)
-class PairRef:
-    """A pair stored in a loop-closure dataset folder, loaded by the worker (no pickling)."""
-
-    dataset_dir: str
-    index: int
-
-    def load(self) -> Any:
-        return _dataset_pairs(self.dataset_dir)[self.index]
-
-
-def _dataset_pairs(dataset_dir: str) -> list[Any]:
-    """The pairs of a dataset folder, loaded once per process (and again if rebuilt)."""
-    from graffmatch.evaluation.loop_closures import PAIRS_FILE
-
-    f = Path(dataset_dir) / PAIRS_FILE
-    return _dataset_pairs_cached(dataset_dir, f.stat().st_mtime_ns if f.is_file() else 0)
-
-
-@functools.lru_cache(maxsize=8)
-def _dataset_pairs_cached(dataset_dir: str, mtime_ns: int) -> list[Any]:
-    from graffmatch.evaluation.loop_closures import LoopClosureDataset
-
-    return list(LoopClosureDataset.load(Path(dataset_dir)))
-
-
-@dataclass(frozen=True)
-class Task:
-    """One (suite, pair, method) unit of work; small and picklable."""
-
-    suite: str
-    pair_id: str
-    method: str | EvaluationMethod
-    pair: Any  # a LoopClosurePair or a PairRef
-    task_key: str  # fingerprint of the pair content and evaluation settings (see _task_key)
-    tau_d_deg: float
-    rho_eval: float
-    max_rotation_deg: float
-    max_translation_m: float
-
-    @property
-    def method_name(self) -> str:
-        return self.method if isinstance(self.method, str) else str(self.method.name)
-
-
-# ----------------------------------------------------------------------------------------------
-# method specs: "GraffMatch[rho=20]" -> ("GraffMatch", {"rho": 20.0})
-# ----------------------------------------------------------------------------------------------
-_SPEC = re.compile(r"^(?P<name>[^\[\]]+?)(?:\[(?P<params>[^\[\]]*)\])?$")
-
-
-def parse_method_spec(spec: str) -> tuple[str, dict[str, Any]]:
-    """Split ``Name[key=value,...]`` into the registry name and config overrides."""
-    m = _SPEC.match(spec.strip())
-    if not m:
-        raise InvalidInputError(f"malformed method spec {spec!r}; expected Name or Name[k=v,...]")
-    params: dict[str, Any] = {}
-    for part in filter(None, (p.strip() for p in (m.group("params") or "").split(","))):
-        if "=" not in part:
-            raise InvalidInputError(f"malformed parameter {part!r} in method spec {spec!r}")
-        k, v = (s.strip() for s in part.split("=", 1))
-        try:
-            params[k] = json.loads(v)
-        except json.JSONDecodeError:
-            params[k] = v
-    return m.group("name").strip(), params
-
-
-def rho_spec(rho: float, method: str = RHO_METHOD) -> str:
-    return f"{method}[rho={float(rho):g}]"
-
-
-def method_kind(spec: str) -> str:
-    """'landmark' or 'point' from the registry ('landmark' for the GT pseudo-method)."""
-    name = parse_method_spec(spec)[0]
-    if name == GT_METHOD:
-        return "landmark"
-    from graffmatch.evaluation import methods as registry
-
-    entry = registry.METHODS.get(name)
-    if entry is None:
-        raise InvalidInputError(
-            f"unknown method {name!r}; available: {', '.join(registry.list_methods())}"
-        )
-    return str(entry.kind)
-
-
-# ----------------------------------------------------------------------------------------------
-# the worker side
-# ----------------------------------------------------------------------------------------------
-@dataclass
-class _Output:
-    T_target_source: NDArray[np.float64] | None
-    associations: NDArray[np.intp]
-    timings: dict[str, float]
-    valid: bool
-    info: dict[str, Any]
-
-
-def _gt_output(pair: Any) -> _Output:
-    """Register the landmarks with the true matches: the landmark-only best case."""
-    from graffmatch.registration.closed_form import register_landmarks
-
-    t0 = time.perf_counter()
-    matches = np.asarray(pair.true_matches, dtype=np.intp).reshape(-1, 2)
-    est = register_landmarks(pair.source, pair.target, matches)
-    dt = time.perf_counter() - t0
-    return _Output(
-        T_target_source=np.asarray(est.T_target_source, float),
-        associations=matches,
-        timings={"registration": dt, "total": dt},
-        valid=not bool(getattr(est, "degenerate", False)),
-        info={"kappa": float(getattr(est, "kappa", np.nan))},
-    )
-
-
-@functools.lru_cache(maxsize=64)
-def _registry_method(spec: str) -> Any:
-    from graffmatch.evaluation import methods as registry
-
-    name, params = parse_method_spec(spec)
-    return registry.get_method(name, **params) if params else registry.get_method(name)
-
-
-def _run_registry_method(spec: str, pair: Any) -> Any:
-    from graffmatch.evaluation import methods as registry
-
-    method = _registry_method(spec)
-    # LoopClosurePair.source_scan is the scan *index*; only arrays are raw points.
-    src_pts, tgt_pts = getattr(pair, "source_scan", None), getattr(pair, "target_scan", None)
-    inp = registry.PairInput(
-        source=pair.source,
-        target=pair.target,
-        source_scan=src_pts if isinstance(src_pts, np.ndarray) else None,
-        target_scan=tgt_pts if isinstance(tgt_pts, np.ndarray) else None,
-        source_scan_path=getattr(pair, "source_scan_path", None),
-        target_scan_path=getattr(pair, "target_scan_path", None),
-    )
-    return method.run(inp)
-
-
-def _as_output(out: Any) -> _Output:
-    T = getattr(out, "T_target_source", None)
-    a = getattr(out, "associations", None)
-    a = np.zeros((0, 2), np.intp) if a is None else np.asarray(a)
-    return _Output(
-        T_target_source=None if T is None else np.asarray(T, dtype=float),
-        associations=a.reshape(-1, 2) if a.size else np.zeros((0, 2), np.intp),
-        timings={str(k): float(v) for k, v in (getattr(out, "timings", None) or {}).items()},
-        valid=bool(getattr(out, "valid", T is not None)),
-        info=dict(getattr(out, "info", None) or {}),
-    )
-
-
-def _jsonable_info(info: Mapping[str, Any]) -> dict[str, Any]:
-    """Keep what JSON can hold; everything else is written as its repr (never crash on info)."""
-
-    def conv(v: Any) -> Any:
-        if isinstance(v, (str, bool, int, float)) or v is None:
-            return v
-        if isinstance(v, (np.generic, np.ndarray)):
-            return v.tolist() if np.size(v) <= 64 else f"<array shape={np.shape(v)}>"
-        if isinstance(v, Mapping):
-            return {str(k): conv(x) for k, x in v.items()}
-        if isinstance(v, (list, tuple)):
-            return [conv(x) for x in v][:64]
-        return repr(v)
-
-    return {str(k): conv(v) for k, v in info.items()}
-
-
-def execute_task(task: Task) -> dict[str, Any]:
-    """Run one method on one pair and evaluate it (runs in a worker; returns a JSON dict).
-
-    A method that raises yields a record with ``status="error"`` and the message: one baseline
-    crashing on one pair must not end a study of hours. The report counts these.
-    """
-    pair = task.pair.load() if isinstance(task.pair, PairRef) else task.pair
-    name = task.method_name
-    kind = (
-        str(getattr(task.method, "kind", "landmark"))
-        if not isinstance(task.method, str)
-        else method_kind(name)
-    )
-    T_gt = np.asarray(pair.T_target_source, dtype=float)
-    error: str | None = None
-    t0 = time.perf_counter()
-    try:
-        if name == GT_METHOD:
-            out = _gt_output(pair)
-        elif isinstance(task.method, str):
-            out = _as_output(_run_registry_method(task.method, pair))
-        else:
-            out = _as_output(task.method(pair))
-    except Exception as exc:  # recorded, see docstring
-        tb = traceback.format_exc(limit=6)
-        error = f"{type(exc).__name__}: {exc}\n{tb}"
-        out = _Output(None, np.zeros((0, 2), np.intp), {}, False, {})
-    wall = time.perf_counter() - t0
-    timings = dict(out.timings)
-    timings.setdefault("total", wall)
-
-    def evaluate(o: _Output) -> M.PairRecord:
-        # Point methods return point correspondences, not landmark indices: no LMR for them.
-        return M.PairRecord.from_output(
-            pair_id=task.pair_id,
-            method=name,
-            source=pair.source,
-            target=pair.target,
-            T_target_source_gt=T_gt,
-            T_target_source_est=o.T_target_source if o.valid else None,
-            associations=o.associations if kind == "landmark" else None,
-            timings=timings,
-            valid=o.valid,
-            kind=kind,
-            rho=task.rho_eval,
-            info=_jsonable_info(o.info),
-        )
-
-    try:
-        rec = evaluate(out)
-    except Exception as exc:  # malformed output (e.g. indices out of range): an error record
-        error = f"invalid output: {type(exc).__name__}: {exc}"
-        out = _Output(None, np.zeros((0, 2), np.intp), {}, False, {})
-        rec = evaluate(out)
-    if kind != "landmark":
-        rec.n_associations = len(out.associations)
-    rot, trans = rec.errors()
-    d = rec.association_distances_deg
-    doc = rec.to_dict()
-    doc.update(
-        M._jsonable(
-            {
-                "record_version": RECORD_VERSION,
-                "task_key": task.task_key,
-                "suite": task.suite,
-                "case": int(getattr(pair, "case", 0)),
-                "iir": float(getattr(pair, "iir", np.nan)),
-                "distance": float(getattr(pair, "distance", np.nan)),
-                "n_true_matches": len(np.asarray(pair.true_matches).reshape(-1, 2)),
-                "rotation_error_deg": rot,
-                "translation_error_m": trans,
-                "success": M.registration_success(
-                    rot, trans, task.max_rotation_deg, task.max_translation_m
-                ),
-                "tau_d_deg": task.tau_d_deg,
-                "oir": M.oir_from_distances(d, task.tau_d_deg) if kind == "landmark" else None,
-                "inlier_mask": (d < task.tau_d_deg) if kind == "landmark" else None,
-                "status": "ok" if error is None else "error",
-                "error": error,
-            }
-        )
-    )
-    return doc
-
-
-# ----------------------------------------------------------------------------------------------
-# files
-# ----------------------------------------------------------------------------------------------
-def slug(text: str) -> str:
-    """A file-name-safe, readable and injective-enough form of a method or pair name."""
-    s = re.sub(r"[^A-Za-z0-9._+=-]+", "_", text).strip("_")
-    return s or "_"
-
-
-def record_path(out_dir: str | Path, suite: str, method: str, pair_id: str) -> Path:
-    return Path(out_dir) / "records" / slug(suite) / slug(method) / f"{slug(pair_id)}.json"
-
-
-def atomic_write_json(path: Path, doc: Any) -> None:
-    """Write JSON so that a reader sees the old file or the complete new one, never half."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(doc, f, indent=1)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def _read_record(path: Path) -> dict[str, Any] | None:
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
-        return None
-    return doc if isinstance(doc, dict) and doc.get("record_version") == RECORD_VERSION else None
-
-
-def load_records(results_dir: str | Path, current_only: bool = True) -> list[dict[str, Any]]:
-    """The records of a results folder, sorted by (suite, method, pair_id).
-
-    ``current_only``: keep only records of the pairs selected by the last run (``pairs/``),
-    computed on the same pair content and settings; stale records of a rebuilt dataset or of a
-    larger earlier selection stay on disk but are not reported.
-    """
-    root = Path(results_dir) / "records"
-    if not root.is_dir():
-        raise MalformedFileError(f"{results_dir} is not a results folder (no records/)")
-    out = [r for p in sorted(root.glob("*/*/*.json")) if (r := _read_record(p)) is not None]
-    if current_only:
-        keys = _current_task_keys(Path(results_dir))
-        if keys is not None:
-            out = [
-                r for r in out if keys.get((slug(r["suite"]), r["pair_id"])) == r.get("task_key")
-            ]
-    out.sort(key=lambda r: (r["suite"], r["method"], r["pair_id"]))
-    return out
-
-
-def _current_task_keys(results_dir: Path) -> dict[tuple[str, str], str] | None:
-    """(suite slug, pair_id) -> task key of the latest selection per suite; None if unknown."""
-    cfg = load_config(results_dir)
-    pairs_dir = results_dir / "pairs"
-    if not cfg.get("study") or not pairs_dir.is_dir():
-        return None
-    study = StudyConfig.model_validate(cfg["study"])
-    out: dict[tuple[str, str], str] = {}
-    for f in sorted(pairs_dir.glob("*.json")):
-        for meta in json.loads(f.read_text()):
-            out[(f.stem, str(meta["pair_id"]))] = _task_key(str(meta.get("fingerprint")), study)
-    return out
-
-
-def load_config(results_dir: str | Path) -> dict[str, Any]:
-    p = Path(results_dir) / "config.json"
-    return json.loads(p.read_text()) if p.is_file() else {}
-
-
-def record_without_timings(rec: Mapping[str, Any]) -> dict[str, Any]:
-    """A record minus what legitimately differs between runs (timings)."""
-    drop = {"timings"}
-    return {k: v for k, v in rec.items() if k not in drop}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -480,32 +131,6 @@ def _pair_id(pair: Any, index: int) -> str:
         if v is not None and not callable(v):
             return str(v)
     return f"{index:06d}"
-
-
-def pair_fingerprint(pair: Any) -> str:
-    """Hash of what defines a pair (ground truth, true matches, case, both landmark sets).
-
-    A record is reused on resume only if the pair it was computed on is unchanged: a rebuilt
-    dataset may keep pair ids while their landmarks or cases change.
-    """
-    h = hashlib.sha1()
-    for a in (
-        np.round(np.asarray(pair.T_target_source, dtype=float), 9),
-        np.asarray(pair.true_matches, dtype=np.int64),
-        np.asarray([int(getattr(pair, "case", 0))]),
-    ):
-        h.update(np.ascontiguousarray(a).tobytes())
-    for ls in (pair.source, pair.target):
-        h.update(np.ascontiguousarray(ls.types).tobytes())
-        h.update(np.ascontiguousarray(np.round(ls.anchors, 9)).tobytes())
-        h.update(np.ascontiguousarray(np.round(ls.bases, 9)).tobytes())
-        h.update(str(None if ls.points is None else ls.points.shape).encode())
-    return h.hexdigest()[:16]
-
-
-def _task_key(fingerprint: str, cfg: StudyConfig) -> str:
-    params = (cfg.tau_d_deg, cfg.rho_eval, cfg.max_rotation_deg, cfg.max_translation_m)
-    return hashlib.sha1(f"{fingerprint}|{params!r}".encode()).hexdigest()[:16]
 
 
 def _pair_meta(pair: Any, pair_id: str) -> dict[str, Any]:
@@ -761,8 +386,8 @@ def run_study(
                 specs += rho_specs
             for spec in specs:
                 mname = spec if isinstance(spec, str) else str(spec.name)
-                key = _task_key(e.meta["fingerprint"], cfg)
-                rec = _read_record(record_path(out, name, mname, e.pair_id))
+                key = task_key(e.meta["fingerprint"], cfg)
+                rec = read_record(record_path(out, name, mname, e.pair_id))
                 if (
                     rec is not None
                     and rec.get("task_key") == key
@@ -862,53 +487,3 @@ class _progress:
     def __exit__(self, *exc: object) -> None:
         if self._p is not None:
             self._p.stop()
-
-
-# ----------------------------------------------------------------------------------------------
-# comparing runs
-# ----------------------------------------------------------------------------------------------
-COMPARE_METRICS = ("recall", "auc", "rotation_error_deg", "translation_error_m", "median_ms")
-
-
-def compare_runs(dir_a: str | Path, dir_b: str | Path) -> list[dict[str, Any]]:
-    """Metric differences (b - a) per (suite, case, method), on the pairs both runs finished.
-
-    Returns rows ``{suite, case, method, n, <metric>_a, <metric>_b, <metric>_delta}``; render
-    them with :func:`format_comparison`.
-    """
-    from graffmatch.evaluation.report import summarize
-
-    ra, rb = load_records(dir_a), load_records(dir_b)
-    key = lambda r: (r["suite"], r["method"], r["pair_id"])  # noqa: E731
-    common = {key(r) for r in ra} & {key(r) for r in rb}
-    sa = {
-        (s["suite"], s["case"], s["method"]): s
-        for s in summarize([r for r in ra if key(r) in common])
-    }
-    sb = {
-        (s["suite"], s["case"], s["method"]): s
-        for s in summarize([r for r in rb if key(r) in common])
-    }
-    rows = []
-    for k in sorted(set(sa) & set(sb), key=lambda k: (k[0], str(k[1]), k[2])):
-        row: dict[str, Any] = {"suite": k[0], "case": k[1], "method": k[2], "n": sa[k]["n"]}
-        for m in COMPARE_METRICS:
-            a, b = sa[k].get(m), sb[k].get(m)
-            row[f"{m}_a"], row[f"{m}_b"] = a, b
-            ok = a is not None and b is not None and np.isfinite(a) and np.isfinite(b)
-            row[f"{m}_delta"] = (b - a) if ok else None
-        rows.append(row)
-    return rows
-
-
-def format_comparison(rows: Sequence[Mapping[str, Any]]) -> str:
-    """Markdown table of :func:`compare_runs` rows."""
-    head = ["suite", "case", "method", "n"] + [f"Δ{m}" for m in COMPARE_METRICS]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in rows:
-        vals = [str(r["suite"]), str(r["case"]), str(r["method"]), str(r["n"])]
-        for m in COMPARE_METRICS:
-            d = r[f"{m}_delta"]
-            vals.append("–" if d is None else f"{d:+.3g}")
-        lines.append("| " + " | ".join(vals) + " |")
-    return "\n".join(lines)

@@ -1,0 +1,225 @@
+"""The report's figures: LMR curves, alignment-error heatmaps, runtimes, rho sensitivity.
+
+Matplotlib is imported lazily (Agg backend) so that the tables never need it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from graffmatch.evaluation import metrics as M
+from graffmatch.evaluation.records import GT_METHOD
+from graffmatch.evaluation.tables import group_by, num
+
+
+# ----------------------------------------------------------------------------------------------
+# figures
+# ----------------------------------------------------------------------------------------------
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _oirs(group: Sequence[Mapping[str, Any]]) -> np.ndarray:
+    tau = num(group[0].get("tau_d_deg", M.DEFAULT_TAU_D_DEG))
+    return np.array([M.PairRecord.from_dict(r).oir(tau) for r in group])
+
+
+def fig_lmr(records: Sequence[Mapping[str, Any]], methods: Sequence[str], path: Path, title: str):
+    """LMR vs tau_OIR (left) and LMR at tau_OIR = 0.8 vs tau_d (right)."""
+    plt = _plt()
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.5))
+    groups = group_by(records, "method")
+    for m in methods:
+        g = groups.get((m,))
+        if not g:
+            continue
+        style = {"color": "k", "ls": "--"} if m == GT_METHOD else {}
+        t, v = M.lmr_curve(_oirs(g))
+        a1.plot(t, v, label=f"{m} (AUC {np.mean(_oirs(g)):.2f})", **style)
+        dists = [M.PairRecord.from_dict(r).association_distances_deg for r in g]
+        td, vd = M.lmr_vs_tau_d(dists)
+        a2.plot(td, vd, label=m, **style)
+    a1.set(xlabel=r"$\tau_{OIR}$", ylabel="LMR", title=f"{title}: LMR vs $\\tau_{{OIR}}$")
+    a2.set(
+        xlabel=r"$\tau_d$ [deg]",
+        ylabel=r"LMR at $\tau_{OIR}=0.8$",
+        title=f"{title}: LMR vs $\\tau_d$",
+    )
+    a2.axvline(M.DEFAULT_TAU_D_DEG, color="gray", lw=0.8)
+    for a in (a1, a2):
+        a.set_ylim(-0.02, 1.02)
+        a.grid(alpha=0.3)
+    a1.legend(fontsize=7, loc="lower left")
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.12, top=0.92, wspace=0.18)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+ROT_RANGE = (-2.0, 2.5)  # log10 deg
+TRANS_RANGE = (-2.5, 2.0)  # log10 m
+
+
+def fig_error_heatmaps(
+    records: Sequence[Mapping[str, Any]], methods: Sequence[str], path: Path, title: str
+) -> None:
+    """Alignment-error densities: rows = cases, columns = methods (GT-matches first).
+
+    Each panel is a 2D histogram of log10 translation error (x, -2.5..2) vs log10 rotation
+    error (y, -2..2.5), divided by its maximum ("likelihood-normalised"); cyan lines mark
+    5 deg and 1 m; pairs without an estimate are counted under the panel. The panels are tiled
+    into one image on one axes: dozens of matplotlib axes would dominate the report's runtime.
+    """
+    plt = _plt()
+    cases = sorted({r["case"] for r in records}, key=str)
+    groups = group_by(records, "case", "method")
+    nr, nc, nb, gap = len(cases), len(methods), 30, 6
+    bins = (np.linspace(*TRANS_RANGE, nb + 1), np.linspace(*ROT_RANGE, nb + 1))
+    img = np.full((nr * (nb + gap), nc * (nb + gap)), np.nan)
+    labels = []
+    for i, case in enumerate(cases):
+        for j, m in enumerate(methods):
+            g = groups.get((case, m), [])
+            rot = np.array([num(r["rotation_error_deg"]) for r in g])
+            tr = np.array([num(r["translation_error_m"]) for r in g])
+            fin = np.isfinite(rot) & np.isfinite(tr)
+            x = np.clip(np.log10(np.maximum(tr[fin], 1e-9)), *TRANS_RANGE)
+            y = np.clip(np.log10(np.maximum(rot[fin], 1e-9)), *ROT_RANGE)
+            H, _, _ = np.histogram2d(x, y, bins=bins)
+            if H.max() > 0:
+                H = H / H.max()  # likelihood-normalised: the densest cell is 1
+            r0, c0 = i * (nb + gap), j * (nb + gap)
+            img[r0 : r0 + nb, c0 : c0 + nb] = H.T[::-1]  # rows: high rotation error on top
+            ok = sum(bool(r["success"]) for r in g)
+            labels.append(
+                (r0 + nb + 0.5, c0 + nb / 2, f"{ok}/{len(g)} ok, {int((~fin).sum())} none")
+            )
+    fig, ax = plt.subplots(figsize=(1.45 * nc + 1.0, 1.55 * nr + 1.0))
+    fig.subplots_adjust(left=0.8 / (1.45 * nc + 1.0), right=0.99, bottom=0.02, top=0.86)
+    cmap = plt.get_cmap("magma").with_extremes(bad="white")
+    ax.imshow(img, cmap=cmap, vmin=0, vmax=1, interpolation="nearest", aspect="equal")
+    # threshold lines: x = log10(1 m), y = log10(5 deg), in bin units of each panel
+    xt = (0.0 - TRANS_RANGE[0]) / (TRANS_RANGE[1] - TRANS_RANGE[0]) * nb - 0.5
+    yt = nb - (np.log10(5.0) - ROT_RANGE[0]) / (ROT_RANGE[1] - ROT_RANGE[0]) * nb - 0.5
+    for i in range(nr):
+        for j in range(nc):
+            r0, c0 = i * (nb + gap), j * (nb + gap)
+            ax.plot([c0 + xt] * 2, [r0 - 0.5, r0 + nb - 0.5], color="c", lw=0.6)
+            ax.plot([c0 - 0.5, c0 + nb - 0.5], [r0 + yt] * 2, color="c", lw=0.6)
+    for r, c, text in labels:
+        ax.text(c, r, text, ha="center", va="top", fontsize=5.5)
+    for j, m in enumerate(methods):
+        ax.text(j * (nb + gap) + nb / 2, -1.5, m, ha="center", va="bottom", fontsize=6.5)
+    for i, case in enumerate(cases):
+        ax.text(
+            -2,
+            i * (nb + gap) + nb / 2,
+            f"case {case}",
+            ha="right",
+            va="center",
+            fontsize=7,
+            rotation=90,
+        )
+    ax.set_axis_off()
+    ax.set_xlim(-4, img.shape[1])
+    ax.set_ylim(img.shape[0], -4)
+    fig.suptitle(
+        f"{title}: alignment-error density per method (columns) and case (rows)\n"
+        "x: log10 t_e [m] from -2.5 to 2, y: log10 R_e [deg] from -2 to 2.5; cyan: 1 m, 5 deg",
+        fontsize=7,
+    )
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def fig_runtimes(records: Sequence[Mapping[str, Any]], methods: Sequence[str], out: Path) -> None:
+    """Box plots of total runtime per method, and of each stage of each method (one axes)."""
+    plt = _plt()
+    groups = group_by(records, "method")
+
+    def box(path: Path, series: list[tuple[str, list[float]]], ylabel: str, title: str) -> None:
+        fig, ax = plt.subplots(figsize=(max(6.0, 0.32 * len(series) + 2), 4.8))
+        fig.subplots_adjust(left=0.12, right=0.99, bottom=0.3, top=0.92)
+        if series:
+            ax.boxplot([v for _, v in series], showfliers=False)
+            ax.set_xticks(
+                range(1, len(series) + 1),
+                [k for k, _ in series],
+                rotation=60,
+                ha="right",
+                fontsize=6.5,
+            )
+            ax.set_yscale("log")
+        ax.axhline(100.0, color="gray", ls=":", lw=0.8)  # 10 Hz LiDAR budget
+        ax.set_ylabel(ylabel)
+        ax.set_title(title, fontsize=9)
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+
+    def ms(g: Sequence[Mapping[str, Any]], stage: str) -> list[float]:
+        v = [1e3 * num(r["timings"].get(stage)) for r in g if stage in r["timings"]]
+        return [max(x, 1e-3) for x in v if np.isfinite(x)]
+
+    totals = [(m, ms(groups.get((m,), []), "total")) for m in methods]
+    box(
+        out / "runtime_total.png",
+        [(m, v) for m, v in totals if v],
+        "total runtime per pair [ms] (log)",
+        "Runtime per method (dotted: 100 ms = 10 Hz)",
+    )
+    stages: list[tuple[str, list[float]]] = []
+    for m in methods:
+        g = groups.get((m,), [])
+        names = sorted({k for r in g for k in r["timings"] if k != "total"})
+        stages += [(f"{m}: {s}", v) for s in names if (v := ms(g, s))]
+    if stages:
+        box(
+            out / "runtime_stages.png",
+            stages,
+            "stage runtime [ms] (log)",
+            "Runtime per method and stage",
+        )
+
+
+def fig_rho(rho_rows: Sequence[Mapping[str, Any]], stats: Mapping[str, Any], path: Path) -> None:
+    """Histogram of pairwise landmark-centroid distances (left) and AUC over rho (right)."""
+    plt = _plt()
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4))
+    for suite, st in stats.items():
+        counts = np.asarray(st.get("counts", []), dtype=float)
+        if counts.sum() <= 0:
+            continue
+        w = float(st["bin_width_m"])
+        edges = np.arange(len(counts) + 1) * w
+        a1.stairs(
+            counts / counts.sum() / w,
+            edges,
+            label=f"{suite}: {st['mean_m']:.0f} ± {st['std_m']:.0f} m",
+        )
+    a1.set(xlabel="pairwise landmark-centroid distance [m]", ylabel="density")
+    a1.legend(fontsize=8)
+    for k, suite in enumerate(sorted({r["suite"] for r in rho_rows})):
+        rr = [r for r in rho_rows if r["suite"] == suite]
+        rho, c = [r["rho"] for r in rr], f"C{k % 10}"
+        a2.plot(rho, [r["auc"] for r in rr], "o-", color=c, label=f"{suite} AUC")
+        a2.plot(rho, [r["recall"] for r in rr], "x--", color=c, label=f"{suite} recall")
+    a2.set_xscale("log")
+    a2.set(xlabel=r"$\rho$", ylabel="AUC / recall", ylim=(-0.02, 1.02))
+    a2.set_title(r"GraffMatch sensitivity to $\rho$")
+    a2.grid(alpha=0.3)
+    if rho_rows:
+        a2.legend(fontsize=8)
+    fig.subplots_adjust(left=0.07, right=0.99, bottom=0.13, top=0.92, wspace=0.2)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------------------------
