@@ -1,4 +1,4 @@
-"""The report's figures: LMR curves, alignment-error heatmaps, runtimes, rho sensitivity.
+"""The evaluation's figures: LMR curves, error heatmaps, runtimes, rho, dataset details.
 
 Matplotlib is imported lazily (Agg backend) so that the tables never need it.
 """
@@ -7,13 +7,16 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from graffmatch.evaluation import metrics as M
 from graffmatch.evaluation.records import GT_METHOD
 from graffmatch.evaluation.tables import group_by, num
+
+if TYPE_CHECKING:
+    from graffmatch.evaluation.loop_closure_dataset import LoopClosureDataset
 
 
 # ----------------------------------------------------------------------------------------------
@@ -222,4 +225,62 @@ def fig_rho(rho_rows: Sequence[Mapping[str, Any]], stats: Mapping[str, Any], pat
     plt.close(fig)
 
 
-# ----------------------------------------------------------------------------------------------
+# ---- the loop-closure dataset ---------------------------------------------------------------
+CASE_COLORS = {1: "#2ca02c", 2: "#ff7f0e", 3: "#d62728"}
+
+
+def plot_dataset_details(ds: LoopClosureDataset, path: str | Path) -> Path:
+    """The paper's dataset-details figure: IIR vs sensor distance (coloured by case), and the
+    true line and plane matches per case."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(10, 4))
+    for c in (1, 2, 3):
+        ps = ds.of_case(c)
+        ax0.scatter(
+            [p.distance for p in ps],
+            [p.iir for p in ps],
+            s=10,
+            alpha=0.7,
+            color=CASE_COLORS[c],
+            label=f"case {c} ({len(ps)})",
+        )
+    ax0.set_xlabel("sensor distance [m]")
+    ax0.set_ylabel("input inlier ratio")
+    ax0.set_yscale("log")
+    for y in ds.config.case_thresholds:
+        ax0.axhline(y, color="grey", lw=0.8, ls="--")
+    ax0.legend(loc="upper right", fontsize=8)
+    ax0.set_title(f"{ds.name}: {len(ds)} loop closures")
+    data, pos, colors = [], [], []
+    for k, c in enumerate((1, 2, 3)):
+        ps = ds.of_case(c)
+        if not ps:  # an empty case gets no box (not a misleading box at zero)
+            continue
+        data += [[p.n_true_lines for p in ps], [p.n_true_planes for p in ps]]
+        pos += [3 * k + 0.6, 3 * k + 1.4]
+        colors += ["#1f77b4", "#9467bd"]
+    if data:
+        bp = ax1.boxplot(data, positions=pos, widths=0.7, patch_artist=True, showfliers=False)
+        for patch, col in zip(bp["boxes"], colors, strict=True):
+            patch.set_facecolor(col)
+            patch.set_alpha(0.6)
+    counts = ds.case_counts()
+    ax1.set_xticks([1, 4, 7], [f"case {c}\n(n={counts[c]})" for c in (1, 2, 3)])
+    ax1.set_xlim(-0.5, 8.5)
+    ax1.set_ylabel("true matches per pair")
+    from matplotlib.patches import Patch
+
+    ax1.legend(
+        [Patch(color="#1f77b4", alpha=0.6), Patch(color="#9467bd", alpha=0.6)],
+        ["lines", "planes"],
+        fontsize=8,
+    )
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

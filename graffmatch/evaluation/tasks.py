@@ -65,7 +65,7 @@ class PairRef:
 
 def _dataset_pairs(dataset_dir: str) -> list[Any]:
     """The pairs of a dataset folder, loaded once per process (and again if rebuilt)."""
-    from graffmatch.evaluation.loop_closures import PAIRS_FILE
+    from graffmatch.evaluation.loop_closure_dataset import PAIRS_FILE
 
     f = Path(dataset_dir) / PAIRS_FILE
     return _dataset_pairs_cached(dataset_dir, f.stat().st_mtime_ns if f.is_file() else 0)
@@ -73,7 +73,7 @@ def _dataset_pairs(dataset_dir: str) -> list[Any]:
 
 @functools.lru_cache(maxsize=8)
 def _dataset_pairs_cached(dataset_dir: str, mtime_ns: int) -> list[Any]:
-    from graffmatch.evaluation.loop_closures import LoopClosureDataset
+    from graffmatch.evaluation.loop_closure_dataset import LoopClosureDataset
 
     return list(LoopClosureDataset.load(Path(dataset_dir)))
 
