@@ -6,17 +6,21 @@ Results go to stdout (so that they can be piped); progress, logs and errors go t
 from __future__ import annotations
 
 import functools
+import json
 import logging
 import sys
 import time
 import warnings
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import dataclass, field
-from datetime import datetime
+from datetime import datetime, timezone
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as _pkg_version
 from pathlib import Path
 from typing import Any, TypeVar
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.progress import (
@@ -38,6 +42,14 @@ F = TypeVar("F", bound=Callable[..., Any])
 EXIT_ERROR = 1
 EXIT_USAGE = 2  # click's own code for bad usage
 EXIT_NOT_VALID = 3  # the command ran, but its result misses its bounds / is not valid
+
+#: Tables print at most this many rows unless -v (the JSON files hold everything).
+MAX_TABLE_ROWS = 40
+
+try:
+    __version__ = _pkg_version("graffmatch")
+except PackageNotFoundError:  # running from a source tree without installation
+    __version__ = "0.0.0+unknown"
 
 
 @dataclass
@@ -192,3 +204,54 @@ def exit_with(code: int) -> None:
 
 def python_version() -> str:
     return ".".join(str(v) for v in sys.version_info[:3])
+
+
+def status(message: str) -> AbstractContextManager[Any]:
+    """A spinner on stderr while a step runs; nothing under -q (rich would still draw)."""
+    return nullcontext() if STATE.quiet else err.status(message, spinner="dots")
+
+
+def fmt_ms(seconds: float) -> str:
+    return f"{1e3 * seconds:.1f} ms"
+
+
+def now() -> str:
+    """UTC time stamp of a result file."""
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def jsonable(x: Any) -> Any:
+    """Arrays, numpy scalars and paths as JSON values; non-finite floats as null."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return jsonable(x.tolist())
+    if isinstance(x, np.generic):
+        return jsonable(x.item())
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    if isinstance(x, Path):
+        return str(x)
+    return x
+
+
+def write_json(path: Path, data: Any) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(jsonable(data), indent=2) + "\n")
+    return path
+
+
+def write_config_beside(result_path: Path) -> Path:
+    """The configuration next to one result file: ``<stem>.config.yaml``."""
+    from graffmatch.cli.settings import save_settings
+
+    return save_settings(STATE.settings, result_path.with_name(result_path.stem + ".config.yaml"))
+
+
+def print_matrix(T: Any, title: str, note: str = "") -> None:
+    """A 4x4 transform on stdout, one row a line, under a bold title (and a note)."""
+    out.print(f"[bold]{title}[/bold]" + (f" ({note})" if note else ""))
+    for r in np.asarray(T, dtype=float):
+        out.print("  " + " ".join(f"{v:+10.5f}" for v in r))

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import json
 import re
+import time
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -100,6 +101,51 @@ class LoadedInput:
     points: NDArray | None = None
     labels_path: Path | None = None
     timings: dict[str, float] | None = None
+
+
+class LazyExtractor:
+    """One landmark extractor, built on first use: landmark files need none, and the LiDAR
+    front end (Open3D) is slow to import."""
+
+    def __init__(self, config: Any = None) -> None:
+        self.config = config
+        self._extractor: Any = None
+
+    def get(self) -> Any:
+        if self._extractor is None:
+            from graffmatch.lidar.extractor import LandmarkExtractor
+
+            self._extractor = LandmarkExtractor(self.config)
+        return self._extractor
+
+
+def load_input(
+    path: Path, labels: Path | None, label_mode: str, extractor: LazyExtractor
+) -> LoadedInput:
+    """A scan (extracted now, with its timings) or a landmark file, as a LoadedInput."""
+    if not path.exists():
+        raise MalformedFileError(f"{path}: input not found")
+    if path.is_dir():
+        raise MalformedFileError(f"{path}: input is a folder; give one scan or one landmark file")
+    if is_landmark_file(path):
+        return LoadedInput(path, "landmarks", LandmarkSet.load(path))
+    label_path = find_labels(path, labels, label_mode)
+    pts, lab = read_scan(path, label_path)
+    ex = extractor.get()
+    t0 = time.perf_counter()
+    ls = ex.extract(pts, lab)
+    timings = dict(ex.last_timings)
+    timings.setdefault("total", time.perf_counter() - t0)
+    return LoadedInput(path, "scan", ls, pts, label_path, timings)
+
+
+def counts_text(ls: LandmarkSet) -> str:
+    """'12 poles, 30 planes' (and points when there are any)."""
+    c = ls.counts()
+    parts = [f"{c['lines']} poles", f"{c['planes']} planes"]
+    if c["points"]:
+        parts.append(f"{c['points']} points")
+    return ", ".join(parts)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -606,3 +607,18 @@ def write_match_view(
     html = html.replace("<head>", f"<head>{PAGE_STYLE}", 1)
     path.write_text(html, encoding="utf-8")
     return path
+
+
+def result_view_info(data: Mapping[str, Any]) -> dict[str, str]:
+    """The info box of a view from a saved registration result (``graffmatch register`` JSON)."""
+    d = {
+        "associations": str(len(data["associations"])),
+        "score": f"{data['score']:.2f}" if data["score"] is not None else "-",
+        "κ": f"{data['kappa']:.3g}" if data["kappa"] is not None else "-",
+        "valid": "yes" if data["valid"] else "no",
+    }
+    gt = data.get("ground_truth")
+    if gt:
+        d["inliers"] = f"{gt['n_inliers']}/{len(data['associations'])}"
+        d["error"] = f"{gt['rotation_error_deg']:.2f}° / {gt['translation_error_m']:.2f} m"
+    return d
