@@ -23,6 +23,7 @@ Only a bounded number of tasks is in flight at a time (``max_in_flight``) so tha
 
 from __future__ import annotations
 
+import importlib
 import multiprocessing
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -66,6 +67,19 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def _require(module: str, hint: str) -> Any:
+    """Import an optional engine, or say how to install it."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise ExecutorUnavailableError(hint) from exc
+
+
+def _window(max_in_flight: int | None, n_workers: int) -> int:
+    """Tasks kept in flight: enough to keep every worker busy, few enough to stop quickly."""
+    return int(max_in_flight or 4 * n_workers)
+
+
 class _ClosesOnExit:
     """``with executor:`` closes it (pools, clients, clusters) however the block ends."""
 
@@ -107,7 +121,7 @@ class LocalProcessExecutor(_ClosesOnExit):
         self.workers = int(workers or default_workers())
         if self.workers < 1:
             raise InvalidInputError(f"workers must be >= 1, got {workers}")
-        self.max_in_flight = int(max_in_flight or 4 * self.workers)
+        self.max_in_flight = _window(max_in_flight, self.workers)
         # forkserver, not fork: the driver has threads (progress bar, Dask), and forking a
         # threaded process can deadlock. The server preloads the heavy imports once.
         methods = multiprocessing.get_all_start_methods()
@@ -175,12 +189,10 @@ class DaskExecutor(_ClosesOnExit):
         max_in_flight: int | None = None,
         client: Any | None = None,
     ) -> None:
-        try:
-            import distributed
-        except ImportError as exc:  # pragma: no cover - dask is a dependency
-            raise ExecutorUnavailableError(
-                "the dask executor needs 'dask[distributed]': pip install 'dask[distributed]'"
-            ) from exc
+        distributed = _require(
+            "distributed",
+            "the dask executor needs 'dask[distributed]': pip install 'dask[distributed]'",
+        )
         self._cluster = None
         self._own_client = client is None
         if client is not None:
@@ -200,7 +212,7 @@ class DaskExecutor(_ClosesOnExit):
             )
             self.client = distributed.Client(self._cluster)
         n_threads = sum(self.client.nthreads().values()) or 1
-        self.max_in_flight = int(max_in_flight or 4 * n_threads)
+        self.max_in_flight = _window(max_in_flight, n_threads)
 
     def imap_unordered(self, fn: Callable[[T], R], items: Iterable[T]) -> Iterator[tuple[int, R]]:
         from distributed import as_completed
@@ -253,13 +265,11 @@ class RayExecutor(_ClosesOnExit):
         workers: int | None = None,
         max_in_flight: int | None = None,
     ) -> None:
-        try:
-            import ray
-        except ImportError as exc:
-            raise ExecutorUnavailableError(
-                "the ray executor needs Ray, which graffmatch does not install: "
-                "pip install 'ray[default]' (or use --executor dask)"
-            ) from exc
+        ray = _require(
+            "ray",
+            "the ray executor needs Ray, which graffmatch does not install: "
+            "pip install 'ray[default]' (or use --executor dask)",
+        )
         self._ray = ray
         self._own = not ray.is_initialized()
         if self._own:
@@ -268,7 +278,7 @@ class RayExecutor(_ClosesOnExit):
             else:
                 ray.init(num_cpus=int(workers or default_workers()))
         n = int(ray.cluster_resources().get("CPU", 1))
-        self.max_in_flight = int(max_in_flight or 4 * n)
+        self.max_in_flight = _window(max_in_flight, n)
         self._remote_cache: dict[Callable[..., Any], Any] = {}
 
     def imap_unordered(self, fn: Callable[[T], R], items: Iterable[T]) -> Iterator[tuple[int, R]]:
@@ -301,7 +311,6 @@ class RayExecutor(_ClosesOnExit):
     def close(self) -> None:
         if self._own:
             self._ray.shutdown()
-
 
 
 def make_executor(

@@ -6,21 +6,9 @@ driver writes every finished record *at once* with an atomic write (temporary fi
 ``os.replace``), so killing a worker or the driver loses no finished result, and a rerun skips
 what is on disk and computes only the rest.
 
-Records and the results folder are defined in :mod:`~graffmatch.evaluation.records`, the
-worker side in :mod:`~graffmatch.evaluation.tasks`, comparisons in
-:mod:`~graffmatch.evaluation.compare`; their public names stay importable from here.
-
-Layout of a results folder::
-
-    config.json                 the exact configuration of the last invocation
-    runs.jsonl                  one line per invocation (config, start, end, counts)
-    pairs/<suite>.json          per pair: id, case, IIR, baseline distance, #true matches, counts
-    stats/<suite>.json          histogram of pairwise landmark-centroid distances (rho choice)
-    records/<suite>/<method>/<pair_id>.json   one record per (method, pair)
-
-A record is :class:`graffmatch.evaluation.metrics.PairRecord` (estimate, ground truth, the
-GT-aligned d_Graff distance of every selected association, timings) plus the derived numbers a
-human wants to grep: rotation/translation error, success, OIR and the inlier mask at tau_d.
+The records and the layout of a results folder are defined in
+:mod:`~graffmatch.evaluation.records`, the worker side in :mod:`~graffmatch.evaluation.tasks`,
+comparisons in :mod:`~graffmatch.evaluation.compare`; their public names stay importable here.
 
 The pseudo-method ``GT-matches`` registers each pair with its true landmark matches; it is the
 best a landmark-only registration can do and the first column of the error heatmaps.

@@ -17,24 +17,17 @@ import numpy as np
 
 from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation import metrics as M
+from graffmatch.evaluation.methods import (
+    GLOBAL_BASELINES,
+    LOCAL_METHODS,
+    TABLE_I_METHODS,
+    TABLE_II_METHODS,
+)
 from graffmatch.evaluation.records import GT_METHOD, RHO_METHOD
 
 #: Column order of the paper's Table I, then our extra variants.
-TABLE_I_ORDER = (
-    "CPMatch",
-    "BruteForceRMSE",
-    "ClusterMatch",
-    "LiPMatch",
-    "CLIPPER-Rn",
-    "CLIPPER-CP",
-    "GraffMatch",
-    "GraffMatch-Naive",
-    "GraffMatch-lines",
-    "GraffMatch-planes",
-)
-TABLE_II_ORDER = ("GraffMatch+ICP", "FPFH+RANSAC", "ScanContext", "ScanContext+ICP", "KISS-Matcher")
-LOCAL_METHODS = ("CPMatch", "BruteForceRMSE")
-GLOBAL_BASELINES = ("ClusterMatch", "LiPMatch", "CLIPPER-Rn", "CLIPPER-CP")
+TABLE_I_ORDER = (*TABLE_I_METHODS, "GraffMatch-Naive", "GraffMatch-lines", "GraffMatch-planes")
+TABLE_II_ORDER = (*TABLE_II_METHODS, "KISS-Matcher")
 CLIPPER_METHODS = ("CLIPPER-Rn", "CLIPPER-CP")
 BASELINES = LOCAL_METHODS + GLOBAL_BASELINES
 ALL_CASES = "all"

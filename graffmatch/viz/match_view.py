@@ -420,6 +420,32 @@ def _extent(*arrays: np.ndarray) -> np.ndarray:
     return np.stack([A.min(axis=0), A.max(axis=0)])
 
 
+def check_match(
+    source_landmarks: LandmarkSet,
+    target_landmarks: LandmarkSet,
+    T_target_source: ArrayLike,
+    associations: ArrayLike,
+    inlier_mask: ArrayLike | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.bool_] | None]:
+    """(T, associations (k, 2), inlier mask or None) of a match to draw, checked."""
+    T = check_transform(T_target_source, "T_target_source")
+    assoc = np.asarray(associations, dtype=np.int64).reshape(-1, 2)
+    if len(assoc) and (
+        assoc.min() < 0
+        or assoc[:, 0].max() >= len(source_landmarks)
+        or assoc[:, 1].max() >= len(target_landmarks)
+    ):
+        raise InvalidInputError("associations index beyond the landmark sets")
+    mask = None
+    if inlier_mask is not None:
+        mask = np.asarray(inlier_mask, dtype=bool).reshape(-1)
+        if mask.shape != (len(assoc),):
+            raise InvalidInputError(
+                f"inlier_mask must have one entry per association ({len(assoc)}), got {mask.shape}"
+            )
+    return T, assoc, mask
+
+
 def match_figure(
     source_landmarks: LandmarkSet,
     target_landmarks: LandmarkSet,
@@ -438,21 +464,9 @@ def match_figure(
     """Build the plotly figure (see :func:`write_match_view`); useful to embed in reports."""
     import plotly.graph_objects as go
 
-    T = check_transform(T_target_source, "T_target_source")
-    assoc = np.asarray(associations, dtype=np.int64).reshape(-1, 2)
-    if len(assoc) and (
-        assoc.min() < 0
-        or assoc[:, 0].max() >= len(source_landmarks)
-        or assoc[:, 1].max() >= len(target_landmarks)
-    ):
-        raise InvalidInputError("associations index beyond the landmark sets")
-    mask = None
-    if inlier_mask is not None:
-        mask = np.asarray(inlier_mask, dtype=bool).reshape(-1)
-        if mask.shape != (len(assoc),):
-            raise InvalidInputError(
-                f"inlier_mask must have one entry per association ({len(assoc)}), got {mask.shape}"
-            )
+    T, assoc, mask = check_match(
+        source_landmarks, target_landmarks, T_target_source, associations, inlier_mask
+    )
     src_pts = downsample(source_points, max_points, seed=1)
     tgt_pts = downsample(target_points, max_points, seed=2)
 

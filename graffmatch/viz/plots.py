@@ -14,9 +14,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike
 
-from graffmatch.errors import InvalidInputError
 from graffmatch.geometry.landmarks import LandmarkSet
-from graffmatch.geometry.transforms import check_transform, transform_points
+from graffmatch.geometry.transforms import transform_points
 from graffmatch.viz.match_view import (
     INLIER_COLOR,
     OUTLIER_COLOR,
@@ -25,6 +24,7 @@ from graffmatch.viz.match_view import (
     TARGET_COLOR,
     TARGET_LANDMARK_COLOR,
     UNKNOWN_COLOR,
+    check_match,
     downsample,
     plane_quads,
     pole_segments,
@@ -92,17 +92,9 @@ def plot_match_topdown(
         matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    T = check_transform(T_target_source, "T_target_source")
-    assoc = np.asarray(associations, dtype=np.int64).reshape(-1, 2)
-    if len(assoc) and (
-        assoc.min() < 0
-        or assoc[:, 0].max() >= len(source_landmarks)
-        or assoc[:, 1].max() >= len(target_landmarks)
-    ):
-        raise InvalidInputError("associations index beyond the landmark sets")
-    mask = None if inlier_mask is None else np.asarray(inlier_mask, bool).reshape(-1)
-    if mask is not None and mask.shape != (len(assoc),):
-        raise InvalidInputError("inlier_mask must have one entry per association")
+    T, assoc, mask = check_match(
+        source_landmarks, target_landmarks, T_target_source, associations, inlier_mask
+    )
     src_pts = downsample(source_points, max_points, seed=1)
     tgt_pts = downsample(target_points, max_points, seed=2)
     if side_by_side:
@@ -116,29 +108,14 @@ def plot_match_topdown(
     own = ax is None
     if own:
         _, ax = plt.subplots(figsize=(7, 7), dpi=dpi)
-    if len(tgt_pts):
-        ax.scatter(
-            tgt_pts[:, 0],
-            tgt_pts[:, 1],
-            s=0.3,
-            c=TARGET_COLOR,
-            alpha=0.5,
-            lw=0,
-            rasterized=True,
-        )
-        ax.scatter([], [], s=12, c=TARGET_COLOR, label="target scan")  # legend proxy
-    if len(src_pts):
-        P = transform_points(T, src_pts)
-        ax.scatter(
-            P[:, 0],
-            P[:, 1],
-            s=0.3,
-            c=SOURCE_COLOR,
-            alpha=0.5,
-            lw=0,
-            rasterized=True,
-        )
-        ax.scatter([], [], s=12, c=SOURCE_COLOR, label="source scan")  # legend proxy
+    src_placed = transform_points(T, src_pts) if len(src_pts) else src_pts
+    for pts, color, label in (
+        (tgt_pts, TARGET_COLOR, "target scan"),
+        (src_placed, SOURCE_COLOR, "source scan"),
+    ):
+        if len(pts):
+            ax.scatter(pts[:, 0], pts[:, 1], s=0.3, c=color, alpha=0.5, lw=0, rasterized=True)
+            ax.scatter([], [], s=12, c=color, label=label)  # legend proxy
     _draw_landmarks(ax, target_landmarks, TARGET_LANDMARK_COLOR, "target")
     _draw_landmarks(ax, placed, SOURCE_LANDMARK_COLOR, "source")
     if len(assoc):

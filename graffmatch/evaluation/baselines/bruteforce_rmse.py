@@ -23,23 +23,18 @@ without support points cannot be scored and are skipped.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation.methods import (
+    LocalMethod,
     MethodKind,
-    MethodOutput,
-    PairInput,
     Timer,
-    dataclass_params,
-    no_estimate,
-    register_associations,
-    too_few_landmarks,
 )
 from graffmatch.geometry.landmarks import LandmarkSet
-from graffmatch.geometry.transforms import check_transform
 
 Array = NDArray[np.float64]
 
@@ -105,7 +100,8 @@ def greedy_one_to_one(cost: Array, max_cost_per_row: Array) -> NDArray[np.intp]:
 
 
 @dataclass
-class BruteForceRMSE:
+class BruteForceRMSE(LocalMethod):
+    moves_points = True  # the RMSE is computed on the support points
     max_rmse_point: float = 1.0
     max_rmse_line: float = 0.5
     max_rmse_plane: float = 0.2
@@ -114,23 +110,13 @@ class BruteForceRMSE:
     name: str = "BruteForceRMSE"
     kind: MethodKind = "landmark"
 
-    @property
-    def params(self) -> dict[str, float]:
-        return dataclass_params(self)
-
-    def run(self, pair: PairInput) -> MethodOutput:
-        T_init = check_transform(self.T_init, "T_init")
-        timer = Timer()
-        problem = too_few_landmarks(pair)
-        if problem:
-            return no_estimate(problem, timer)
+    def associate(
+        self, moved_source: LandmarkSet, target: LandmarkSet, timer: Timer
+    ) -> tuple[NDArray[np.intp], dict[str, Any]]:
         with timer.stage("rmse"):
-            src = pair.source.transform(T_init)
-            rmse = symmetric_rmse(src, pair.target)
+            rmse = symmetric_rmse(moved_source, target)
         with timer.stage("selection"):
             gates = np.array([self.max_rmse_point, self.max_rmse_line, self.max_rmse_plane])
-            a = greedy_one_to_one(rmse, gates[pair.source.types.astype(np.intp)])
-        with timer.stage("registration"):
-            T, valid, info = register_associations(pair.source, pair.target, a, self.kappa_max)
-        info["mean_rmse"] = float(rmse[a[:, 0], a[:, 1]].mean()) if len(a) else float("nan")
-        return MethodOutput(T, a, timer.finish(), valid, info)
+            a = greedy_one_to_one(rmse, gates[moved_source.types.astype(np.intp)])
+        mean = float(rmse[a[:, 0], a[:, 1]].mean()) if len(a) else float("nan")
+        return a, {"mean_rmse": mean}

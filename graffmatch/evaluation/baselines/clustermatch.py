@@ -32,11 +32,11 @@ from numpy.typing import NDArray
 
 from graffmatch.evaluation.baselines.bruteforce_rmse import greedy_one_to_one
 from graffmatch.evaluation.methods import (
+    MethodBase,
     MethodKind,
     MethodOutput,
     PairInput,
     Timer,
-    dataclass_params,
     no_estimate,
     register_associations,
     too_few_landmarks,
@@ -165,7 +165,7 @@ def support_masks(
 
 
 @dataclass
-class ClusterMatch:
+class ClusterMatch(MethodBase):
     pair_tolerance: float = 1.0
     min_pair_distance: float = 2.0
     max_hypotheses: int = 5000
@@ -177,10 +177,6 @@ class ClusterMatch:
     seed: int = 0
     name: str = "ClusterMatch"
     kind: MethodKind = "landmark"
-
-    @property
-    def params(self) -> dict[str, float]:
-        return dataclass_params(self)
 
     def _associate(self, src: LandmarkSet, tgt: LandmarkSet, T: Array) -> NDArray[np.intp]:
         ok, D = support_masks(src, tgt, T[None], self.inlier_distance, self.inlier_angle_deg)

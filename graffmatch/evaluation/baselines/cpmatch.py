@@ -24,23 +24,18 @@ Points (type 0) are associated the same way (their CP vector is the point itself
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from graffmatch.evaluation.methods import (
+    LocalMethod,
     MethodKind,
-    MethodOutput,
-    PairInput,
     Timer,
-    dataclass_params,
-    no_estimate,
-    register_associations,
-    too_few_landmarks,
 )
 from graffmatch.geometry.landmarks import LandmarkSet
-from graffmatch.geometry.transforms import check_transform
 
 
 def direction_angles_deg(d1: NDArray[np.float64], d2: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -76,7 +71,7 @@ def cp_associations(
 
 
 @dataclass
-class CPMatch:
+class CPMatch(LocalMethod):
     max_cp_distance: float = 1.0
     max_angle_deg: float = 15.0
     kappa_max: float = 1e3
@@ -84,20 +79,9 @@ class CPMatch:
     name: str = "CPMatch"
     kind: MethodKind = "landmark"
 
-    @property
-    def params(self) -> dict[str, float]:
-        return dataclass_params(self)
-
-    def run(self, pair: PairInput) -> MethodOutput:
-        T_init = check_transform(self.T_init, "T_init")
-        timer = Timer()
-        problem = too_few_landmarks(pair)
-        if problem:
-            return no_estimate(problem, timer)
+    def associate(
+        self, moved_source: LandmarkSet, target: LandmarkSet, timer: Timer
+    ) -> tuple[NDArray[np.intp], dict[str, Any]]:
         with timer.stage("association"):
-            src = pair.source.without_points().transform(T_init)
-            a = cp_associations(src, pair.target, self.max_cp_distance, self.max_angle_deg)
-        with timer.stage("registration"):
-            # Register the original source so that T maps source-frame points to the target.
-            T, valid, info = register_associations(pair.source, pair.target, a, self.kappa_max)
-        return MethodOutput(T, a, timer.finish(), valid, info)
+            a = cp_associations(moved_source, target, self.max_cp_distance, self.max_angle_deg)
+        return a, {}

@@ -22,17 +22,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from graffmatch.evaluation.methods import (
+    MethodBase,
     MethodKind,
     MethodOutput,
     PairInput,
     Timer,
     as_xyz,
-    dataclass_params,
 )
 
 
 @dataclass
-class FpfhRansac:
+class FpfhRansac(MethodBase):
     voxel_size: float = 0.35
     normal_radius_factor: float = 2.0
     feature_radius_factor: float = 5.0
@@ -45,10 +45,6 @@ class FpfhRansac:
     seed: int = 0
     name: str = "FPFH+RANSAC"
     kind: MethodKind = "point"
-
-    @property
-    def params(self) -> dict[str, float]:
-        return dataclass_params(self)
 
     def _features(self, P: np.ndarray):  # type: ignore[no-untyped-def]
         import open3d as o3d

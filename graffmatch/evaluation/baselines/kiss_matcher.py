@@ -18,18 +18,18 @@ import numpy as np
 
 from graffmatch.errors import GraffMatchError
 from graffmatch.evaluation.methods import (
+    MethodBase,
     MethodKind,
     MethodOutput,
     PairInput,
     Timer,
     as_xyz,
-    dataclass_params,
 )
 from graffmatch.geometry.transforms import make_transform
 
 
 @dataclass
-class KissMatcher:
+class KissMatcher(MethodBase):
     voxel_size: float = 0.3
     use_quatro: bool = False
     thr_linearity: float = 1.0
@@ -40,10 +40,6 @@ class KissMatcher:
     solver_noise_bound_gain: float = 0.75
     name: str = "KISS-Matcher"
     kind: MethodKind = "point"
-
-    @property
-    def params(self) -> dict[str, float]:
-        return dataclass_params(self)
 
     def run(self, pair: PairInput) -> MethodOutput:
         try:

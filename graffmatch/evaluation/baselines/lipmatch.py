@@ -42,11 +42,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graffmatch.evaluation.methods import (
+    MethodBase,
     MethodKind,
     MethodOutput,
     PairInput,
     Timer,
-    dataclass_params,
     register_associations,
 )
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
@@ -81,7 +81,7 @@ def _pair_geometry(ls: LandmarkSet) -> tuple[Array, Array, Array]:
 
 
 @dataclass
-class LiPMatch:
+class LiPMatch(MethodBase):
     max_area_ratio: float = 3.0
     max_elongation_ratio: float = 3.0
     max_elevation_diff_deg: float = 10.0
@@ -94,10 +94,6 @@ class LiPMatch:
     kappa_max: float = 1e3
     name: str = "LiPMatch"
     kind: MethodKind = "landmark"
-
-    @property
-    def params(self) -> dict[str, float]:
-        return dataclass_params(self)
 
     def unary(self, src: LandmarkSet, tgt: LandmarkSet) -> NDArray[np.bool_]:
         """(n_s, n_t) unary compatibility of plane pairs."""

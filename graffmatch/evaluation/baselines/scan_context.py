@@ -31,12 +31,12 @@ from numpy.typing import NDArray
 
 from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation.methods import (
+    MethodBase,
     MethodKind,
     MethodOutput,
     PairInput,
     Timer,
     as_xyz,
-    dataclass_params,
 )
 from graffmatch.geometry.transforms import make_transform, rot_z
 
@@ -99,7 +99,7 @@ def sc_distance(desc_source: Array, desc_target: Array) -> tuple[float, int, Arr
 
 
 @dataclass
-class ScanContext:
+class ScanContext(MethodBase):
     """Scan Context yaw estimate between two raw scans (zero translation)."""
 
     num_rings: int = 20
@@ -108,10 +108,6 @@ class ScanContext:
     lidar_height: float = 2.0
     name: str = "ScanContext"
     kind: MethodKind = "point"
-
-    @property
-    def params(self) -> dict[str, float]:
-        return dataclass_params(self)
 
     def _yaw(self, pair: PairInput, timer: Timer) -> tuple[Array, Array, Array, dict]:
         src_raw, tgt_raw = pair.scans(self.name)
@@ -182,10 +178,6 @@ class ScanContextICP(ScanContext):
     icp_distances: tuple[float, ...] = (3.0, 1.5, 0.75)
     icp_iterations: int = 30
     name: str = "ScanContext+ICP"
-
-    @property
-    def params(self) -> dict[str, float]:
-        return dataclass_params(self)
 
     def run(self, pair: PairInput) -> MethodOutput:
         timer = Timer()
