@@ -269,7 +269,7 @@ def _method_params(method: str | EvaluationMethod) -> Any:
 
 def default_methods(quick: bool = False) -> list[str]:
     """Every registered method; quick mode keeps the fast point methods only."""
-    from graffmatch.evaluation import methods as registry
+    from graffmatch.evaluation import registry
 
     names = list(registry.list_methods())
     if quick:

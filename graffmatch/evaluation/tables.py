@@ -17,13 +17,13 @@ import numpy as np
 
 from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation import metrics as M
-from graffmatch.evaluation.methods import (
+from graffmatch.evaluation.records import GT_METHOD, RHO_METHOD
+from graffmatch.evaluation.registry import (
     GLOBAL_BASELINES,
     LOCAL_METHODS,
     TABLE_I_METHODS,
     TABLE_II_METHODS,
 )
-from graffmatch.evaluation.records import GT_METHOD, RHO_METHOD
 
 #: Column order of the paper's Table I, then our extra variants.
 TABLE_I_ORDER = (*TABLE_I_METHODS, "GraffMatch-Naive", "GraffMatch-lines", "GraffMatch-planes")

@@ -129,7 +129,7 @@ def method_kind(spec: str) -> str:
     name = parse_method_spec(spec)[0]
     if name == GT_METHOD:
         return "landmark"
-    from graffmatch.evaluation import methods as registry
+    from graffmatch.evaluation import registry
 
     entry = registry.METHODS.get(name)
     if entry is None:
@@ -167,19 +167,19 @@ def _gt_output(pair: Any) -> _Output:
 
 @functools.lru_cache(maxsize=64)
 def _registry_method(spec: str) -> Any:
-    from graffmatch.evaluation import methods as registry
+    from graffmatch.evaluation import registry
 
     name, params = parse_method_spec(spec)
     return registry.get_method(name, **params) if params else registry.get_method(name)
 
 
 def _run_registry_method(spec: str, pair: Any) -> Any:
-    from graffmatch.evaluation import methods as registry
+    from graffmatch.evaluation.methods import PairInput
 
     method = _registry_method(spec)
     # LoopClosurePair.source_scan is the scan *index*; only arrays are raw points.
     src_pts, tgt_pts = getattr(pair, "source_scan", None), getattr(pair, "target_scan", None)
-    inp = registry.PairInput(
+    inp = PairInput(
         source=pair.source,
         target=pair.target,
         source_scan=src_pts if isinstance(src_pts, np.ndarray) else None,

@@ -16,7 +16,7 @@ from numpy.typing import ArrayLike
 
 from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.geometry.transforms import transform_points
-from graffmatch.viz.match_view import (
+from graffmatch.viz.scene import (
     INLIER_COLOR,
     OUTLIER_COLOR,
     SOURCE_COLOR,
