@@ -22,7 +22,7 @@ $(STAMP): pyproject.toml
 	@$(MAKE) --no-print-directory system-deps
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e ".[dev,baselines,calib,cluster]"
+	$(PY) -m pip install -q -e ".[dev,baselines,calib,cluster,loops,ray]"
 	@touch $(STAMP)
 
 setup: $(STAMP)

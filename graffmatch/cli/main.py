@@ -101,5 +101,10 @@ for _group in (config, scans, config.config_app, data, evaluation, calibrate):
 
 __all__ = ["__version__", "app"]
 
+from graffmatch.cli import loops as _loops_cli  # noqa: E402  (loop closure over whole drives)
+
+_loops_cli.register(app)
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()

@@ -1,0 +1,135 @@
+"""``graffmatch loops`` and ``graffmatch benchmark-loops``: loop closure over whole drives."""
+
+from __future__ import annotations
+
+from enum import Enum
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from graffmatch.cli.common import STATE, cli_errors, info, make_progress, out, run_dir
+
+
+class Retriever(str, Enum):
+    descriptor = "descriptor"
+    scan_context = "scan-context"
+    radius = "radius"
+
+
+class LoopExecutor(str, Enum):
+    local = "local"
+    serial = "serial"
+    dask = "dask"
+    ray = "ray"
+
+
+def _progress_callback(progress):
+    tasks: dict[str, int] = {}
+
+    def cb(stage: str, done: int, total: int) -> None:
+        if stage not in tasks:
+            tasks[stage] = progress.add_task(stage, total=total)
+        progress.update(tasks[stage], completed=done, total=total)
+
+    return cb
+
+
+def _open(sequence: Path, kind: str):
+    from graffmatch.datasets.registry import open_dataset
+
+    return open_dataset(kind, sequence)
+
+
+def register(app: typer.Typer) -> None:
+    """Add the commands to the main app (one line in cli/main.py)."""
+    app.command(
+        "loops",
+        epilog="[bold]Examples[/bold]\n\n  graffmatch loops data/balm_courtyard -o loops-out\n\n"
+        "  graffmatch loops sim/drive --optimize --odometry drift --executor ray\n\n"
+        "  graffmatch loops data/seq --retriever scan-context --top-k 10 --min-confidence 0.6",
+    )(cli_errors(loops))
+    app.command(
+        "benchmark-loops",
+        epilog="[bold]Examples[/bold]\n\n  graffmatch benchmark-loops sim/drive1 sim/drive2 -o bench-loops\n\n"
+        "  graffmatch benchmark-loops data/balm_courtyard -m ours -m scan-context-icp",
+    )(cli_errors(benchmark_loops))
+
+
+def loops(
+    sequence: Annotated[Path, typer.Argument(help="Sequence folder (KITTI layout, simulated drive, ...).")],
+    output: Annotated[Path | None, typer.Option("--output", "-o", help="Results folder (rerun to resume).")] = None,
+    kind: Annotated[str, typer.Option(help="Dataset kind for open_dataset (folder, kitti, kitti360, nclt).")] = "folder",
+    retriever: Annotated[Retriever, typer.Option(help="Candidate retrieval.")] = Retriever.descriptor,
+    top_k: Annotated[int | None, typer.Option(min=1, help="Candidates verified per query.")] = None,
+    exclude_seconds: Annotated[float | None, typer.Option(min=0, help="Skip scans this recent [s].")] = None,
+    exclude_frames: Annotated[int | None, typer.Option(min=0, help="Also skip this many recent scans.")] = None,
+    radius: Annotated[float | None, typer.Option(min=0, help="Radius retriever: search radius [m].")] = None,
+    min_confidence: Annotated[float | None, typer.Option(min=0, max=1, help="Report loops from this confidence.")] = None,
+    optimize: Annotated[bool, typer.Option(help="Pose graph with GTSAM; KITTI/TUM trajectories, ATE/RPE.")] = False,
+    odometry: Annotated[
+        str, typer.Option(help="Odometry for --optimize/radius: drift | gt | kiss-icp | PATH (KITTI poses).")
+    ] = "drift",
+    drift_yaw: Annotated[float, typer.Option(help="Simulated drift: heading bias [deg/100 m].")] = 3.0,
+    drift_seed: Annotated[int, typer.Option(help="Simulated drift seed.")] = 0,
+    executor: Annotated[LoopExecutor, typer.Option(help="Where extraction and verification run.")] = LoopExecutor.local,
+    address: Annotated[str | None, typer.Option(help="Cluster address (dask/ray).")] = None,
+    workers: Annotated[int | None, typer.Option(min=1, help="Local worker processes.")] = None,
+) -> None:
+    """Find every loop closure of a drive: landmarks per scan, retrieval, verified matching."""
+    from graffmatch.loops.detector import LoopDetectorConfig
+    from graffmatch.loops.posegraph import OdometryDriftConfig, odometry_for
+    from graffmatch.loops.sequence import optimize_run, run_loops
+
+    ds = _open(sequence, kind)
+    cfg = LoopDetectorConfig()
+    cfg.retrieval.method = retriever.value
+    for field, value in (("top_k", top_k), ("exclude_seconds", exclude_seconds), ("exclude_frames", exclude_frames), ("radius_m", radius)):
+        if value is not None:
+            setattr(cfg.retrieval, field, value)
+    if min_confidence is not None:
+        cfg.verification.min_confidence = min_confidence
+    cfg = LoopDetectorConfig.model_validate(cfg.model_dump())
+    out_dir = output or run_dir(STATE.runs_dir, "loops")
+    odo = None
+    if optimize or retriever == Retriever.radius:
+        odo = odometry_for(ds, odometry, OdometryDriftConfig(yaw_bias_deg_per_100m=drift_yaw, seed=drift_seed))
+    with make_progress() as progress:
+        summary = run_loops(
+            ds, out_dir, cfg, executor=executor.value, workers=workers, address=address,
+            positions=None if odo is None else odo[:, :3, 3], progress=_progress_callback(progress),
+        )
+    out.print(
+        f"{summary['n_loops']} loops in {summary['n_queries_with_loop']} of {summary['n_scans']} scans "
+        f"({summary['verify_ms_per_query']:.1f} ms verification + {summary['retrieve_ms_per_query']:.2f} ms "
+        f"retrieval per query, {summary['database_bytes_per_scan']:.0f} B/scan) -> {out_dir}"
+    )
+    if optimize and odo is not None:
+        import numpy as np
+
+        pg = optimize_run(out_dir, odo, np.asarray(ds.timestamps), reference=None if odometry == "gt" else np.asarray(ds.poses))
+        if "before" in pg:
+            out.print(
+                f"pose graph: ATE {pg['before']['ate_rmse_m']:.2f} m -> {pg['after']['ate_rmse_m']:.2f} m, "
+                f"RPE {pg['before']['rpe_rmse_m']:.3f} -> {pg['after']['rpe_rmse_m']:.3f} m"
+            )
+        info(f"trajectories -> {out_dir}/optimized_kitti.txt, optimized_tum.txt, trajectory.png")
+
+
+def benchmark_loops(
+    sequences: Annotated[list[Path], typer.Argument(help="Sequence folders with ground-truth poses.")],
+    output: Annotated[Path | None, typer.Option("--output", "-o", help="Results folder.")] = None,
+    methods: Annotated[list[str] | None, typer.Option("--method", "-m", help="ours | scan-context-icp | mapclosures | mapclosures-gt")] = None,
+    workers: Annotated[int | None, typer.Option(min=1, help="Local worker processes.")] = None,
+) -> None:
+    """Sequence-level loop-closure benchmark: PR over confidence, F1-max, recall at 100 % precision."""
+    from graffmatch.evaluation.sequence_benchmark import run_sequence_benchmark
+
+    out_dir = output or run_dir(STATE.runs_dir, "benchmark-loops")
+    with make_progress() as progress:
+        table = run_sequence_benchmark(
+            [Path(s) for s in sequences], out_dir, methods=list(methods) if methods else None,
+            workers=workers, progress=_progress_callback(progress),
+        )
+    out.print(table)
+    info(f"results -> {out_dir}")

@@ -1,0 +1,149 @@
+"""Candidate retrieval: which earlier scans might show the same place as the query.
+
+Three retrievers share one interface (``candidates(db, query, eligible) -> (indices, scores)``,
+best first, lower score = more similar):
+
+* ``descriptor``: k nearest neighbours of the landmark descriptor (:mod:`.descriptor`) in a
+  scipy cKDTree over the eligible scans (rebuilt as the database grows; the newest eligible
+  scans not yet in the tree are searched exhaustively, so the answer is always exact);
+* ``scan-context``: the ring key of Scan Context (Kim & Kim 2018) in a cKDTree, re-ranked by
+  the full column-shift distance (``graffmatch.evaluation.baselines.scan_context``);
+* ``radius``: every eligible scan whose position (odometry estimate) lies within R metres of the
+  query's, nearest first.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial import cKDTree
+
+from graffmatch.errors import InvalidInputError
+from graffmatch.loops.database import LandmarkDatabase
+
+RetrieverName = Literal["descriptor", "scan-context", "radius"]
+
+
+class RetrievalConfig(BaseModel):
+    """How candidates are found and which scans are too recent to be a loop."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    method: RetrieverName = Field("descriptor", description="descriptor | scan-context | radius")
+    top_k: int = Field(5, ge=1, le=200, description="candidates verified per query")
+    exclude_seconds: float = Field(
+        10.0, ge=0, description="skip scans newer than this before the query [s]"
+    )
+    exclude_frames: int = Field(0, ge=0, description="also skip this many most recent scans")
+    radius_m: float = Field(10.0, gt=0, description="radius retriever: search radius [m]")
+    ring_key_candidates: int = Field(
+        10, ge=1, description="scan-context retriever: ring-key neighbours re-ranked by SC distance"
+    )
+    rebuild_fraction: float = Field(
+        0.1, gt=0, description="rebuild the KD-tree when the un-indexed tail exceeds this fraction"
+    )
+
+
+def eligible_count(
+    timestamps: list[float] | NDArray, query: int, config: RetrievalConfig
+) -> int:
+    """Number of leading scans (0..m-1) old enough to be a loop candidate of ``query``."""
+    t = np.asarray(timestamps[:query], float)
+    m = int(np.searchsorted(t, float(timestamps[query]) - config.exclude_seconds, side="right"))
+    return max(0, min(m, query - config.exclude_frames))
+
+
+class _TreeKNN:
+    """Exact kNN over a growing prefix: a cKDTree over the first rows plus a brute-force tail."""
+
+    def __init__(self, rebuild_fraction: float) -> None:
+        self.rebuild_fraction = rebuild_fraction
+        self.tree: cKDTree | None = None
+        self.size = 0
+
+    def query(self, X: NDArray, q: NDArray, m: int, k: int) -> tuple[NDArray, NDArray]:
+        if m <= 0:
+            return np.zeros(0, np.int64), np.zeros(0)
+        if self.tree is None or m < self.size or (m - self.size) > self.rebuild_fraction * max(self.size, 50):
+            self.tree = cKDTree(X[:m])
+            self.size = m
+        k_tree = min(k, self.size)
+        d, i = self.tree.query(q, k=k_tree)
+        d, i = np.atleast_1d(d).astype(float), np.atleast_1d(i).astype(np.int64)
+        if m > self.size:
+            tail = np.linalg.norm(X[self.size : m] - q, axis=1)
+            d = np.concatenate([d, tail])
+            i = np.concatenate([i, np.arange(self.size, m)])
+        order = np.argsort(d, kind="stable")[:k]
+        return i[order], d[order]
+
+
+class DescriptorRetriever:
+    name = "descriptor"
+
+    def __init__(self, config: RetrievalConfig) -> None:
+        self.config = config
+        self._knn = _TreeKNN(config.rebuild_fraction)
+        self._X: NDArray | None = None
+
+    def candidates(self, db: LandmarkDatabase, query: int, eligible: int) -> tuple[NDArray, NDArray]:
+        if self._X is None or len(self._X) < eligible:
+            self._X = db.descriptor_matrix()
+        return self._knn.query(self._X, db.descriptors[query], eligible, self.config.top_k)
+
+
+class ScanContextRetriever:
+    """Needs ``db.extra['scan_context']`` ((rings, sectors) arrays, one per scan)."""
+
+    name = "scan-context"
+
+    def __init__(self, config: RetrievalConfig) -> None:
+        self.config = config
+        self._knn = _TreeKNN(config.rebuild_fraction)
+        self._keys: NDArray | None = None
+
+    def candidates(self, db: LandmarkDatabase, query: int, eligible: int) -> tuple[NDArray, NDArray]:
+        from graffmatch.evaluation.baselines.scan_context import ring_key, sc_distance
+
+        sc = db.extra.get("scan_context")
+        if sc is None or sc[query] is None:
+            raise InvalidInputError("the scan-context retriever needs raw scans (Scan Context per scan)")
+        if self._keys is None or len(self._keys) < eligible:
+            self._keys = np.stack([ring_key(s) for s in sc])
+        idx, _ = self._knn.query(
+            self._keys, self._keys[query], eligible, max(self.config.ring_key_candidates, self.config.top_k)
+        )
+        dist = np.array([sc_distance(sc[query], sc[j])[0] for j in idx])
+        order = np.argsort(dist, kind="stable")[: self.config.top_k]
+        return idx[order], dist[order]
+
+
+class RadiusRetriever:
+    """Needs positions (odometry estimates) in the database."""
+
+    name = "radius"
+
+    def __init__(self, config: RetrievalConfig) -> None:
+        self.config = config
+
+    def candidates(self, db: LandmarkDatabase, query: int, eligible: int) -> tuple[NDArray, NDArray]:
+        if db.positions[query] is None:
+            raise InvalidInputError("the radius retriever needs a position (pose) for every scan")
+        if eligible <= 0:
+            return np.zeros(0, np.int64), np.zeros(0)
+        P = np.stack(db.positions[:eligible])
+        d = np.linalg.norm(P - db.positions[query], axis=1)
+        keep = np.flatnonzero(d <= self.config.radius_m)
+        order = keep[np.argsort(d[keep], kind="stable")][: self.config.top_k]
+        return order.astype(np.int64), d[order]
+
+
+def make_retriever(config: RetrievalConfig) -> DescriptorRetriever | ScanContextRetriever | RadiusRetriever:
+    return {
+        "descriptor": DescriptorRetriever,
+        "scan-context": ScanContextRetriever,
+        "radius": RadiusRetriever,
+    }[config.method](config)

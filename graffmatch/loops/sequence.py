@@ -1,0 +1,375 @@
+"""Loop closure over a whole recorded drive: ``run_loops(dataset, out_dir, config)``.
+
+1. **Landmarks** of every scan, extracted in parallel (any executor: local processes, Dask,
+   Ray) and cached in ``<out>/landmarks/NNNNNN.npz`` (a compact table, :mod:`.database`); the
+   cache key covers the scan file, the labels and the extractor config, so a rerun only
+   extracts what changed.
+2. **Database** of landmark maps and descriptors, in scan order.
+3. **Queries**: for every scan, the candidates among the earlier scans outside the exclusion
+   window (:mod:`.retrieval`), verified with the matcher (:mod:`.verify`), in parallel chunks.
+   Every finished query is appended to ``<out>/queries.jsonl`` at once, so a killed run resumes
+   where it stopped.
+4. **Outputs**: ``loops.csv``, ``loops.g2o`` (loop edges; vertices when poses are known),
+   ``retrieval.csv``, ``summary.json``, ``config.yaml``; with ``optimize`` also the pose graph
+   (:mod:`.posegraph`): ``odometry_kitti.txt``, ``optimized_kitti.txt``, ``optimized_tum.txt``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from graffmatch.datasets.base import Dataset
+from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.evaluation.executors import make_executor
+from graffmatch.loops.database import LandmarkDatabase, load_landmarks, save_landmarks
+from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig
+from graffmatch.loops.io import loop_edges, write_g2o, write_kitti, write_loops_csv, write_tum
+from graffmatch.loops.retrieval import eligible_count
+from graffmatch.loops.verify import LoopClosure, verify_candidate
+
+Progress = Callable[[str, int, int], None]
+LANDMARK_DIR = "landmarks"
+QUERIES_FILE = "queries.jsonl"
+
+
+def _stamp(path: Path | None) -> str:
+    if path is None:
+        return "none"
+    st = Path(path).stat()
+    return f"{Path(path).resolve()}|{st.st_size}|{st.st_mtime_ns}"
+
+
+def _front_end_json(config: LoopDetectorConfig) -> str:
+    return json.dumps(
+        {
+            "extractor": config.extractor.model_dump(mode="json"),
+            "use_labels": config.use_labels,
+            "max_per_type": config.verification.max_landmarks_per_type,
+            "scan_context": config.retrieval.method == "scan-context",
+        },
+        sort_keys=True,
+    )
+
+
+def _scan_key(dataset: Dataset, i: int, config: LoopDetectorConfig) -> str:
+    parts = [_stamp(dataset.scan_path(i)), _stamp(dataset.label_path(i)) if config.use_labels else "nolabels", _front_end_json(config)]
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:20]
+
+
+def _extract_task(args: tuple[Dataset, int, str, str]) -> tuple[int, float]:
+    """Worker: read scan i, extract, keep the most salient landmarks, write the table."""
+    dataset, i, config_json, out_file = args
+    t0 = time.perf_counter()
+    config = LoopDetectorConfig.model_validate_json(config_json)
+    det = LoopDetector(config)
+    scan = dataset[i]
+    labels = scan.labels if config.use_labels else None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        ls = det.extractor.extract(scan.points, labels)
+    ls, _ = det.prepare(ls)
+    if config.retrieval.method == "scan-context":
+        from graffmatch.evaluation.baselines.scan_context import scan_context
+
+        np.save(out_file.replace(".npz", ".sc.npy"), scan_context(scan.points[:, :3]).astype(np.float32))
+    save_landmarks(out_file, ls)
+    return i, time.perf_counter() - t0
+
+
+def _verify_task(args: tuple[str, str, list[tuple[int, list[tuple[int, float]]]]]) -> list[dict]:
+    """Worker: verify the candidates of a chunk of queries; returns one record per query."""
+    out_dir, config_json, chunk = args
+    config = LoopDetectorConfig.model_validate_json(config_json)
+    det = LoopDetector(config)
+    cache: dict[int, Any] = {}
+
+    def lm(i: int):
+        if i not in cache:
+            cache[i] = load_landmarks(Path(out_dir) / LANDMARK_DIR / f"{i:06d}.npz")
+        return cache[i]
+
+    records = []
+    for q, cands in chunk:
+        t0 = time.perf_counter()
+        recs = []
+        for rank, (j, dist) in enumerate(cands):
+            v = verify_candidate(lm(q), lm(j), det.matcher, config.verification)
+            T = v["T_match_query"]
+            recs.append(
+                {
+                    "match": int(j),
+                    "rank": rank,
+                    "retrieval_distance": float(dist),
+                    "T": None if T is None else np.asarray(T).ravel().tolist(),
+                    "confidence": v["confidence"],
+                    "overlap": v["overlap"],
+                    "n_associations": v["n_associations"],
+                    "n_agreeing": v["n_agreeing"],
+                    "rms_offset": v.get("rms_offset"),
+                    "seconds": v["seconds"],
+                }
+            )
+        records.append({"query": int(q), "candidates": recs, "verify_s": time.perf_counter() - t0})
+    return records
+
+
+def read_queries(out_dir: str | Path) -> dict[int, dict]:
+    """The finished query records of a (possibly interrupted) run; a torn last line is ignored."""
+    p = Path(out_dir) / QUERIES_FILE
+    done: dict[int, dict] = {}
+    if not p.is_file():
+        return done
+    for line in p.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue  # the line a kill cut short
+        done[int(rec["query"])] = rec
+    return done
+
+
+def _drop_torn_tail(path: Path) -> None:
+    """Cut a half-written last line (a kill mid-write) so that appends start on a new line."""
+    if not path.is_file():
+        return
+    data = path.read_bytes()
+    if data and not data.endswith(b"\n"):
+        path.write_bytes(data[: data.rfind(b"\n") + 1])
+
+
+def loops_from_records(records: dict[int, dict], min_confidence: float) -> list[LoopClosure]:
+    """Every verified candidate at or above ``min_confidence``, in query order."""
+    out = []
+    for q in sorted(records):
+        for c in records[q]["candidates"]:
+            if c["T"] is None or c["confidence"] < min_confidence:
+                continue
+            out.append(
+                LoopClosure(
+                    query=q,
+                    match=c["match"],
+                    T_match_query=np.asarray(c["T"], float).reshape(4, 4),
+                    confidence=c["confidence"],
+                    overlap=c["overlap"],
+                    n_associations=c["n_associations"],
+                    n_agreeing=c["n_agreeing"],
+                    retrieval_rank=c["rank"],
+                    retrieval_distance=c["retrieval_distance"],
+                    valid=True,
+                    info={"rms_offset": c.get("rms_offset")},
+                )
+            )
+    return out
+
+
+def build_database(
+    dataset: Dataset,
+    out_dir: Path,
+    config: LoopDetectorConfig,
+    executor: str = "local",
+    workers: int | None = None,
+    address: str | None = None,
+    progress: Progress | None = None,
+) -> tuple[LandmarkDatabase, dict]:
+    """Extract (or load cached) landmarks of every scan and build the database."""
+    n = len(dataset)
+    lm_dir = out_dir / LANDMARK_DIR
+    lm_dir.mkdir(parents=True, exist_ok=True)
+    index_file = lm_dir / "index.json"
+    try:
+        index = json.loads(index_file.read_text()) if index_file.is_file() else {}
+    except json.JSONDecodeError:
+        index = {}
+    keys = {i: _scan_key(dataset, i, config) for i in range(n)}
+    todo = [i for i in range(n) if index.get(str(i)) != keys[i] or not (lm_dir / f"{i:06d}.npz").is_file()]
+    cfg_json = config.model_dump_json()
+    stats: dict[str, Any] = {"extracted": len(todo), "cached": n - len(todo), "extract_cpu_s": 0.0}
+    if todo:
+        ex = make_executor("serial" if (workers == 1 and executor == "local") else executor, workers=workers, address=address)
+        tasks = [(dataset, i, cfg_json, str(lm_dir / f"{i:06d}.npz")) for i in todo]
+        done = 0
+        try:
+            for _, (i, dt) in ex.imap_unordered(_extract_task, tasks):
+                index[str(i)] = keys[i]
+                stats["extract_cpu_s"] += dt
+                done += 1
+                if progress:
+                    progress("landmarks", done, len(todo))
+                if done % 50 == 0:
+                    index_file.write_text(json.dumps(index))
+        finally:
+            ex.close()
+            index_file.write_text(json.dumps(index))
+    det = LoopDetector(config)
+    db = det.db
+    times = np.asarray(getattr(dataset, "timestamps", np.arange(n, dtype=float)), float)
+    if np.any(np.diff(times) < 0):
+        raise InvalidInputError(f"{getattr(dataset, 'name', 'dataset')}: timestamps decrease")
+    for i in range(n):
+        ls = load_landmarks(lm_dir / f"{i:06d}.npz")
+        from graffmatch.loops.descriptor import landmark_descriptor
+
+        extra = {}
+        if config.retrieval.method == "scan-context":
+            extra["scan_context"] = np.load(lm_dir / f"{i:06d}.sc.npy")
+        db.add(ls, landmark_descriptor(ls, config.descriptor), float(times[i]), **extra)
+    return db, stats
+
+
+def run_loops(
+    dataset: Dataset,
+    out_dir: str | Path,
+    config: LoopDetectorConfig | None = None,
+    executor: str = "local",
+    workers: int | None = None,
+    address: str | None = None,
+    positions: NDArray | None = None,
+    progress: Progress | None = None,
+    chunk_size: int = 20,
+) -> dict:
+    """Detect the loop closures of a whole drive; writes the files listed in the module doc.
+
+    ``positions`` (n, 3): odometry estimates, needed by the radius retriever and written as
+    g2o vertices. Returns the summary (also in ``summary.json``).
+    """
+    config = config or LoopDetectorConfig()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    (out / "config.yaml").write_text(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
+    db, stats = build_database(dataset, out, config, executor, workers, address, progress)
+    n = len(db)
+    if positions is not None:
+        positions = np.asarray(positions, float)
+        if positions.shape != (n, 3):
+            raise InvalidInputError(f"positions must be ({n}, 3), got {positions.shape}")
+        db.positions = list(positions)
+    elif config.retrieval.method == "radius":
+        raise InvalidInputError("the radius retriever needs positions (poses or odometry)")
+
+    # retrieval in the driver: fast, and it needs the whole database
+    det = LoopDetector(config)
+    det.db = db
+    t0 = time.perf_counter()
+    cands: dict[int, list[tuple[int, float]]] = {}
+    for q in range(n):
+        m = eligible_count(db.timestamps, q, config.retrieval)
+        idx, dist = det.retriever.candidates(db, q, m)
+        cands[q] = list(zip(idx.tolist(), dist.tolist(), strict=True))
+    retrieve_s = time.perf_counter() - t0
+    with open(out / "retrieval.csv", "w") as f:
+        f.write("query,rank,match,distance\n")
+        for q, cs in cands.items():
+            for r, (j, d) in enumerate(cs):
+                f.write(f"{q},{r},{j},{d:.6g}\n")
+
+    # verification, resumable
+    done = read_queries(out)
+    cfg_json = config.model_dump_json()
+    todo = [q for q in range(n) if q not in done and cands[q]]
+    empty = [q for q in range(n) if q not in done and not cands[q]]
+    qfile = out / QUERIES_FILE
+    _drop_torn_tail(qfile)
+    t1 = time.perf_counter()
+    with open(qfile, "a") as f:
+        for q in empty:
+            rec = {"query": q, "candidates": [], "verify_s": 0.0}
+            f.write(json.dumps(rec) + "\n")
+            done[q] = rec
+        chunks = [[(q, cands[q]) for q in todo[k : k + chunk_size]] for k in range(0, len(todo), chunk_size)]
+        if chunks:
+            name = "serial" if (workers == 1 and executor == "local") or len(chunks) == 1 else executor
+            ex = make_executor(name, workers=workers, address=address)
+            n_done = 0
+            try:
+                for _, recs in ex.imap_unordered(_verify_task, [(str(out), cfg_json, c) for c in chunks]):
+                    for rec in recs:
+                        f.write(json.dumps(rec) + "\n")
+                        done[rec["query"]] = rec
+                    f.flush()
+                    os.fsync(f.fileno())
+                    n_done += len(recs)
+                    if progress:
+                        progress("queries", n_done, len(todo))
+            finally:
+                ex.close()
+    verify_wall = time.perf_counter() - t1
+    loops = loops_from_records(done, config.verification.min_confidence)
+    write_loops_csv(out / "loops.csv", loops)
+    write_g2o(out / "loops.g2o", loop_edges(loops))  # vertices: posegraph.g2o (--optimize)
+    n_verified = sum(len(r["candidates"]) for r in done.values())
+    verify_cpu = sum(r["verify_s"] for r in done.values())
+    summary = {
+        "dataset": getattr(dataset, "name", "dataset"),
+        "n_scans": n,
+        "n_loops": len(loops),
+        "n_queries_with_loop": len({lc.query for lc in loops}),
+        "n_candidates_verified": n_verified,
+        "retrieval": config.retrieval.method,
+        "top_k": config.retrieval.top_k,
+        "min_confidence": config.verification.min_confidence,
+        "landmarks": stats,
+        "retrieve_ms_per_query": 1e3 * retrieve_s / max(n, 1),
+        "verify_ms_per_query": 1e3 * verify_cpu / max(len(done), 1),
+        "verify_wall_s": verify_wall,
+        "database_bytes_per_scan": db.bytes_per_scan(),
+        "total_wall_s": time.perf_counter() - t_start,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def load_run(out_dir: str | Path) -> tuple[list[LoopClosure], dict]:
+    """(loops, summary) of a finished run folder."""
+    out = Path(out_dir)
+    if not (out / "summary.json").is_file():
+        raise MalformedFileError(f"{out}: no summary.json (not a finished 'graffmatch loops' run)")
+    from graffmatch.loops.io import read_loops_csv
+
+    return read_loops_csv(out / "loops.csv"), json.loads((out / "summary.json").read_text())
+
+
+def optimize_run(
+    out_dir: str | Path,
+    odometry: NDArray,
+    timestamps: NDArray,
+    reference: NDArray | None = None,
+    config: Any = None,
+) -> dict:
+    """Pose-graph optimisation of a finished run's loops with the given odometry.
+
+    Writes odometry_kitti.txt, optimized_kitti.txt, optimized_tum.txt, posegraph.g2o (vertices +
+    odometry and loop edges), trajectory.png, and ATE/RPE before and after (with ``reference``)
+    into summary.json under "posegraph".
+    """
+    from graffmatch.geometry.transforms import invert
+    from graffmatch.loops.posegraph import optimize_pose_graph, plot_trajectories, trajectory_errors
+
+    out = Path(out_dir)
+    loops, summary = load_run(out)
+    P = np.asarray(odometry, float)
+    edges = loop_edges(loops)
+    opt, info = optimize_pose_graph(P, edges, config)
+    write_kitti(out / "odometry_kitti.txt", P)
+    write_kitti(out / "optimized_kitti.txt", opt)
+    write_tum(out / "optimized_tum.txt", opt, timestamps)
+    odo_edges = [(i, i + 1, invert(P[i]) @ P[i + 1], np.eye(6)) for i in range(len(P) - 1)]
+    write_g2o(out / "posegraph.g2o", odo_edges + edges, opt)
+    if reference is not None:
+        info["before"] = trajectory_errors(P, reference)
+        info["after"] = trajectory_errors(opt, reference)
+    plot_trajectories(out / "trajectory.png", reference, P, opt, loops)
+    summary["posegraph"] = info
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    return info

@@ -1,0 +1,167 @@
+"""Verification of a loop candidate: match the two landmark maps, then check the answer.
+
+The matcher's ``valid`` says the registration is well-posed; a loop edge that a pose graph will
+trust needs more, so every candidate is also scored by *landmark agreement*: after moving the
+query's landmarks into the candidate's frame with the estimate, the fraction of them that lie
+on a landmark of the same type there (direction within ``agree_deg``, axis/plane offset within
+``agree_m``, plane anchors within ``plane_anchor_m`` in the plane). When the matcher reports its
+own ``confidence`` (the verified matcher), that is combined with it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from graffmatch.errors import GraffMatchError
+from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
+from graffmatch.matcher import GraffMatchConfig, GraffMatcher
+
+
+class VerificationConfig(BaseModel):
+    """When a verified candidate becomes a reported loop closure."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    min_confidence: float = Field(
+        0.5, ge=0, le=1, description="report a loop when its confidence reaches this"
+    )
+    min_agreeing: int = Field(
+        6, ge=1, description="fewest agreeing landmarks for a non-zero confidence"
+    )
+    agree_deg: float = Field(3.0, gt=0, description="direction gate of landmark agreement [deg]")
+    agree_m: float = Field(0.5, gt=0, description="offset gate of landmark agreement [m]")
+    plane_anchor_m: float = Field(
+        12.0, gt=0, description="in-plane anchor distance gate of plane agreement [m]"
+    )
+    max_translation_m: float | None = Field(
+        None,
+        gt=0,
+        description="report only loops whose estimated sensor distance is at most this [m] "
+        "(a place definition, e.g. 5 m as in the benchmark); None: any verified loop",
+    )
+    max_landmarks_per_type: int | None = Field(
+        40, ge=2, description="match at most this many landmarks of a type (largest first)"
+    )
+
+
+@dataclass
+class LoopClosure:
+    """A verified loop: ``T_match_query`` maps query-frame points into the match's frame."""
+
+    query: int
+    match: int
+    T_match_query: NDArray[np.float64]
+    confidence: float
+    overlap: float
+    n_associations: int
+    n_agreeing: int
+    retrieval_rank: int
+    retrieval_distance: float
+    valid: bool
+    info: dict = field(default_factory=dict)
+
+    def __repr__(self) -> str:
+        t = self.T_match_query[:3, 3]
+        yaw = np.degrees(np.arctan2(self.T_match_query[1, 0], self.T_match_query[0, 0]))
+        return (
+            f"LoopClosure(query={self.query}, match={self.match}, confidence={self.confidence:.2f}, "
+            f"overlap={self.overlap:.2f}, associations={self.n_associations}, "
+            f"t=[{t[0]:.2f}, {t[1]:.2f}, {t[2]:.2f}] m, yaw={yaw:.1f} deg)"
+        )
+
+
+def landmark_agreement(
+    source: LandmarkSet, target: LandmarkSet, T_target_source: NDArray, config: VerificationConfig
+) -> tuple[int, float]:
+    """(agreeing source landmarks, their fraction of min(n_source, n_target)) after T."""
+    if len(source) == 0 or len(target) == 0:
+        return 0, 0.0
+    s = source.transform(T_target_source)
+    ds, dt = s.directions, target.directions
+    cos_gate = np.cos(np.radians(config.agree_deg))
+    agree = 0
+    for kind in (LandmarkType.LINE, LandmarkType.PLANE, LandmarkType.POINT):
+        i = np.flatnonzero(s.types == kind)
+        j = np.flatnonzero(target.types == kind)
+        if i.size == 0 or j.size == 0:
+            continue
+        diff = s.anchors[i][:, None, :] - target.anchors[j][None, :, :]  # (a, b, 3)
+        if kind == LandmarkType.POINT:
+            ok = np.linalg.norm(diff, axis=2) < config.agree_m
+        else:
+            cosang = np.abs(ds[i] @ dt[j].T)
+            n = dt[j][None, :, :]
+            along = np.einsum("abk,abk->ab", diff, np.broadcast_to(n, diff.shape))
+            if kind == LandmarkType.LINE:  # perpendicular distance to the target axis
+                off = np.linalg.norm(diff - along[..., None] * n, axis=2)
+                ok = (cosang > cos_gate) & (off < config.agree_m)
+            else:  # plane offset along the normal, anchors not too far apart in the plane
+                inplane = np.linalg.norm(diff - along[..., None] * n, axis=2)
+                ok = (cosang > cos_gate) & (np.abs(along) < config.agree_m) & (
+                    inplane < config.plane_anchor_m
+                )
+        agree += int(np.count_nonzero(ok.any(axis=1)))
+    return agree, agree / min(len(source), len(target))
+
+
+def verify_candidate(
+    query: LandmarkSet,
+    candidate: LandmarkSet,
+    matcher: GraffMatcher,
+    config: VerificationConfig,
+) -> dict:
+    """Match ``query`` (source) to ``candidate`` (target) and score the estimate.
+
+    Returns a dict: T_match_query (or None), confidence, overlap, n_associations, n_agreeing,
+    matcher_valid, matcher_confidence, message, seconds.
+    """
+    t0 = time.perf_counter()
+    out = {
+        "T_match_query": None,
+        "confidence": 0.0,
+        "overlap": 0.0,
+        "n_associations": 0,
+        "n_agreeing": 0,
+        "matcher_valid": False,
+        "matcher_confidence": None,
+        "message": "",
+    }
+    try:
+        res = matcher.match(query, candidate)
+    except GraffMatchError as exc:  # too few landmarks or degenerate input: not a loop
+        out["message"] = str(exc)
+        out["seconds"] = time.perf_counter() - t0
+        return out
+    out["message"] = res.message
+    out["matcher_valid"] = bool(res.valid)
+    inl = res.info.get("registration_inliers")
+    if inl is None:
+        out["n_associations"] = len(res.associations)
+    else:  # a boolean mask or an index array of the associations the registration kept
+        inl = np.asarray(inl)
+        out["n_associations"] = int(np.count_nonzero(inl) if inl.dtype == bool else inl.size)
+    out["rms_offset"] = res.info.get("rms_offset")
+    mconf = getattr(res, "confidence", None)
+    out["matcher_confidence"] = None if mconf is None else float(mconf)
+    if res.T_target_source is not None:
+        T = np.asarray(res.T_target_source, float)
+        n_agree, overlap = landmark_agreement(query, candidate, T, config)
+        out.update(T_match_query=T, n_agreeing=n_agree, overlap=float(overlap))
+        too_far = (
+            config.max_translation_m is not None
+            and float(np.linalg.norm(T[:3, 3])) > config.max_translation_m
+        )
+        if res.valid and n_agree >= config.min_agreeing and not too_far:
+            conf = float(overlap) if mconf is None else float(np.sqrt(overlap * float(mconf)))
+            out["confidence"] = float(np.clip(conf, 0.0, 1.0))
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def make_matcher(config: GraffMatchConfig | None) -> GraffMatcher:
+    return GraffMatcher(config)

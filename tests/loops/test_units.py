@@ -1,0 +1,166 @@
+"""Loop-closure building blocks: descriptor invariance, compact database, file round-trips,
+exclusion window, retrieval exactness, pose graph."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
+from graffmatch.geometry.transforms import invert
+from graffmatch.loops import (
+    DescriptorConfig,
+    LandmarkDatabase,
+    LoopClosure,
+    RetrievalConfig,
+    eligible_count,
+    landmark_descriptor,
+    make_retriever,
+)
+from graffmatch.loops.database import decode_landmarks, encode_landmarks, landmarks_to_bytes
+from graffmatch.loops.io import (
+    loop_edges,
+    read_g2o,
+    read_kitti,
+    read_loops_csv,
+    read_tum,
+    write_g2o,
+    write_kitti,
+    write_loops_csv,
+    write_tum,
+)
+from graffmatch.loops.posegraph import drifted_odometry, optimize_pose_graph, trajectory_errors
+
+
+def _place(seed: int, n_poles: int = 14, n_planes: int = 10) -> LandmarkSet:
+    rng = np.random.default_rng(seed)
+    types = [LandmarkType.LINE] * n_poles + [LandmarkType.PLANE] * n_planes
+    dirs = np.concatenate(
+        [np.tile([0.0, 0.0, 1.0], (n_poles, 1)) + 0.02 * rng.standard_normal((n_poles, 3)),
+         np.c_[np.cos(a := rng.uniform(0, np.pi, n_planes)), np.sin(a), 0.05 * rng.standard_normal(n_planes)]]
+    )
+    anchors = rng.uniform([-30, -30, -1], [30, 30, 4], (n_poles + n_planes, 3))
+    attrs = {"extent": rng.uniform(1, 50, n_poles + n_planes), "support": rng.integers(30, 900, n_poles + n_planes).astype(float)}
+    return LandmarkSet.from_arrays(types, dirs, anchors, attrs)
+
+
+def _T(yaw_deg: float, t, tilt_deg: float = 0.0) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("zx", [yaw_deg, tilt_deg], degrees=True).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def test_descriptor_is_rotation_invariant_and_separates_places():
+    ls = _place(0)
+    d0 = landmark_descriptor(ls)
+    assert d0.shape == (DescriptorConfig().size,) and d0.dtype == np.float32
+    for yaw, tilt in ((180.0, 0.0), (37.0, 0.0), (90.0, 20.0)):
+        d1 = landmark_descriptor(ls.transform(_T(yaw, [0, 0, 0], tilt)))
+        assert np.max(np.abs(d1 - d0)) < 1e-5
+    # a 3 m move changes only the range blocks, a little; another place changes everything
+    near = np.linalg.norm(landmark_descriptor(ls.transform(_T(180, [3.0, 0, 0]))) - d0)
+    other = min(np.linalg.norm(landmark_descriptor(_place(s)) - d0) for s in range(1, 6))
+    assert near < 0.5 * other
+
+
+def test_compact_database_round_trip_and_size():
+    ls = _place(1)
+    back = decode_landmarks(encode_landmarks(ls))
+    assert back.approx_equal(ls, atol=1e-5)
+    np.testing.assert_allclose(back.attributes["extent"], ls.attributes["extent"], rtol=1e-6)
+    assert len(landmarks_to_bytes(ls)) < 2500  # 24 landmarks
+    with pytest.raises(MalformedFileError):
+        decode_landmarks(np.zeros((3, 5)))
+
+
+def test_exclusion_window_in_seconds_and_frames():
+    t = np.arange(100) * 0.5
+    cfg = RetrievalConfig(exclude_seconds=10.0)
+    assert eligible_count(t, 50, cfg) == 31  # scans 0..30 are >= 10 s older than scan 50
+    assert eligible_count(t, 10, cfg) == 0
+    cfg = RetrievalConfig(exclude_seconds=0.0, exclude_frames=25)
+    assert eligible_count(t, 50, cfg) == 25
+
+
+def test_descriptor_retrieval_is_exact_knn_over_eligible_prefix():
+    rng = np.random.default_rng(0)
+    db = LandmarkDatabase()
+    ls = _place(2)
+    X = rng.standard_normal((300, 8)).astype(np.float32)
+    for i in range(300):
+        db.add(ls, X[i], float(i))
+    cfg = RetrievalConfig(top_k=5, exclude_seconds=20.0)
+    r = make_retriever(cfg)
+    for q in (30, 100, 101, 180, 299):
+        m = eligible_count(db.timestamps, q, cfg)
+        idx, _ = r.candidates(db, q, m)
+        brute = np.argsort(np.linalg.norm(X[:m] - X[q], axis=1), kind="stable")[:5]
+        assert idx.tolist() == brute.tolist()
+        assert np.all(idx < q - 19)
+    with pytest.raises(InvalidInputError):
+        db.add(ls, np.zeros(3, np.float32), 301.0)
+
+
+def _loop(q, m, T, conf=0.8):
+    return LoopClosure(q, m, T, conf, 0.7, 12, 9, 0, 0.1, True, info={"rms_offset": 0.08})
+
+
+def test_files_round_trip(tmp_path):
+    rng = np.random.default_rng(3)
+    Ts = [_T(rng.uniform(-180, 180), rng.uniform(-10, 10, 3), rng.uniform(-3, 3)) for _ in range(4)]
+    loops = [_loop(50 + k, k, T, 0.5 + 0.1 * k) for k, T in enumerate(Ts)]
+    back = read_loops_csv(write_loops_csv(tmp_path / "loops.csv", loops))
+    assert [(b.query, b.match, b.n_associations) for b in back] == [(a.query, a.match, 12) for a in loops]
+    for a, b in zip(loops, back, strict=True):
+        np.testing.assert_allclose(b.T_match_query, a.T_match_query, atol=1e-7)
+        assert b.confidence == pytest.approx(a.confidence, abs=1e-6)
+    poses = np.stack([_T(10 * i, [i, 2 * i, 0.1 * i]) for i in range(60)])
+    edges = loop_edges(loops)
+    verts, e2 = read_g2o(write_g2o(tmp_path / "l.g2o", edges, poses))
+    assert len(verts) == 60 and len(e2) == 4
+    np.testing.assert_allclose(verts[7], poses[7], atol=1e-7)
+    for (i, j, T, info), (i2, j2, T2, info2) in zip(edges, e2, strict=True):
+        assert (i, j) == (i2, j2)
+        np.testing.assert_allclose(T2, T, atol=1e-7)
+        np.testing.assert_allclose(info2, info, rtol=1e-6)
+        assert np.all(np.linalg.eigvalsh(info2) > 0)
+    np.testing.assert_allclose(read_kitti(write_kitti(tmp_path / "k.txt", poses)), poses, atol=1e-7)
+    t, P = read_tum(write_tum(tmp_path / "t.txt", poses, np.arange(60) * 0.1))
+    np.testing.assert_allclose(P, poses, atol=1e-7)
+    np.testing.assert_allclose(t, np.arange(60) * 0.1)
+    (tmp_path / "bad.g2o").write_text("EDGE_SE3:QUAT 1 2 0 0 0\n")
+    with pytest.raises(MalformedFileError, match="bad.g2o:1"):
+        read_g2o(tmp_path / "bad.g2o")
+
+
+def _square_drive(laps: int = 2, side: int = 40) -> np.ndarray:
+    """A square loop driven ``laps`` times, 1 m a step."""
+    poses = []
+    for _ in range(laps):
+        for k in range(4):
+            for s in range(side):
+                x, y = [(s, 0), (side, s), (side - s, side), (0, side - s)][k]
+                poses.append(_T(90 * k, [x, y, 0]))
+    return np.stack(poses)
+
+
+def test_pose_graph_removes_drift_with_true_loops():
+    gt = _square_drive()
+    odo = drifted_odometry(gt)
+    n = len(gt)
+    edges = []
+    for q in range(160, n, 4):  # second lap: same place one lap earlier
+        Tmq = invert(gt[q - 160]) @ gt[q]
+        edges.append(_loop(q, q - 160, Tmq))
+    opt, info = optimize_pose_graph(odo, loop_edges(edges))
+    before, after = trajectory_errors(odo, gt), trajectory_errors(opt, gt)
+    assert before["ate_rmse_m"] > 0.3
+    assert after["ate_rmse_m"] < before["ate_rmse_m"] / 3
+    assert info["error_after"] < info["error_before"]
+    # one wrong loop (30 m off) is absorbed by the Cauchy kernel
+    bad = _loop(300, 20, _T(90, [30, 0, 0]))
+    opt2, _ = optimize_pose_graph(odo, loop_edges([*edges, bad]))
+    assert trajectory_errors(opt2, gt)["ate_rmse_m"] < before["ate_rmse_m"] / 2
