@@ -2,7 +2,7 @@
 
     PYTHONPATH=. .venv/bin/python bench/simulator_realism.py [--json out.json]
         [--styles downtown suburban open-road] [--pairs 8] [--scans 40] [--seed 1]
-        [--data ../shared/data]
+        [--data ../shared/data] [--realism ideal realistic]
 
 For ../shared/data/kitti00_first6 and for a short simulated HDL-64E drive of each style
 (written to a temporary KITTI-layout folder and read back with the same loader), takes pairs
@@ -75,6 +75,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--scans", type=int, default=40, help="scans of each simulated drive (1 m)")
     ap.add_argument("--pairs", type=int, default=8, help="pairs per simulated drive")
+    ap.add_argument(
+        "--realism", nargs="*", default=["ideal", "realistic"],
+        help="simulator realism presets to compare (graffmatch.datasets.simulator.realism)",
+    )
     ap.add_argument("--json", type=Path, default=None, help="write the table and records here")
     args = ap.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)
@@ -83,8 +87,10 @@ def main() -> None:
         cols["kitti00"] = kitti_column(args.data, args.pairs)
     else:
         print(f"(no KITTI data at {args.data}: simulated columns only)")
-    for style in args.styles:
-        cols[style] = sim_column(style, args.seed, args.scans, args.pairs)
+    for realism in args.realism:
+        for style in args.styles:
+            key = style if len(args.realism) == 1 else f"{style}/{realism}"
+            cols[key] = sim_column(style, args.seed, args.scans, args.pairs, realism=realism)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     print(f"realism table (HDL-64E, default front end without labels, default GraffMatcher; "
           f"seed {args.seed}, load avg {load:.1f})")  # fmt: skip

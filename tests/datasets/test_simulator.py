@@ -520,3 +520,118 @@ def test_bad_inputs_raise_clear_errors(worlds, tmp_path):
         simulate_dataset(tmp_path / "x", n_scans=0)
     with pytest.raises(InvalidInputError):
         simulate_scan_pair(offset_m=100.0)
+
+
+# ---- realism (issue 13) ------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def realistic():
+    """A realistic suburban world, its route and one scan with and without motion."""
+    from graffmatch.datasets.simulator.realism import get_realism
+    from graffmatch.datasets.simulator.simulate import realistic_world_config
+
+    cfg = realistic_world_config(world_preset("suburban"), get_realism("realistic"))
+    w = build_world(cfg, 3)
+    traj = plan_route(w, 30, 3)
+    return w, traj
+
+
+def test_realism_presets_exist_and_ideal_is_the_old_simulator(tmp_path):
+    from graffmatch.datasets.simulator.realism import REALISM_PRESETS, get_realism
+
+    assert {"ideal", "realistic", "kitti-gt"} <= set(REALISM_PRESETS)
+    assert get_realism(None).is_ideal and not get_realism("realistic").is_ideal
+    with pytest.raises(InvalidInputError, match="realism"):
+        get_realism("photoreal")
+    a = simulate_dataset(tmp_path / "a", style="open-road", seed=5, n_scans=3)
+    b = simulate_dataset(tmp_path / "b", style="open-road", seed=5, n_scans=3, realism="ideal")
+    c = simulate_dataset(tmp_path / "c", style="open-road", seed=5, n_scans=3, realism="realistic")
+    for name in ("velodyne/000001.bin", "labels/000001.label", "poses.txt", "sim_meta.json"):
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    assert (a / "velodyne/000001.bin").read_bytes() != (c / "velodyne/000001.bin").read_bytes()
+    assert json.loads((c / "sim_meta.json").read_text())["realism"]["name"] == "realistic"
+    # the suites run the realistic simulator
+    assert all(s.realism == "realistic" for s in SUITES.values())
+
+
+def test_realistic_facades_are_rough_and_vegetation_scatters(worlds, realistic):
+    import warnings
+
+    from graffmatch.evaluation.realism import plane_flatness_rms, scattered_mask
+    from graffmatch.lidar.extractor import LandmarkExtractor
+
+    w, _traj = realistic
+    ideal = worlds["suburban"]
+    ex = LandmarkExtractor()
+    rms, scat = {}, {}
+    for name, world in (("ideal", ideal), ("realistic", w)):
+        T = plan_route(world, 30, 3).T_world_lidar[15]
+        pts, labels = render_scan(world, T, "hdl64", 0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            rms[name] = float(np.median(plane_flatness_rms(ex.extract(pts))))
+        veg = (labels & 0xFFFF) == 70
+        scat[name] = float(scattered_mask(pts)[veg].mean())
+    assert rms["realistic"] > 0.02 and rms["ideal"] < 0.015, rms
+    assert scat["realistic"] > 0.1 and scat["ideal"] < 0.01, scat  # measured 0.15 vs 0.0
+    # glass: windows exist and none of their returns claims a GT landmark
+    assert (w.tri_material == 1).sum() > 1000 and np.all(w.tri_landmark[w.tri_material == 1] == -1)
+
+
+def test_motion_distortion_is_present_and_deskew_removes_it(realistic):
+    from graffmatch.datasets.simulator.motion import deskew_scan, sweep_poses, sweep_twist
+
+    w, traj = realistic
+    T = traj.T_world_lidar
+    i = 12
+    twist = sweep_twist(T[i - 1], T[i + 1])
+    sweep = sweep_poses(T[i], twist, PROFILES["hdl64"].n_columns)
+    pts, _ = render_scan(w, T[i], "hdl64", 0, sweep=sweep)
+    # where each point really is: taken from its column's pose
+    n = PROFILES["hdl64"].n_columns
+    az = np.arctan2(pts[:, 1], pts[:, 0])
+    col = np.clip((np.mod(np.pi - az, 2 * np.pi) / (2 * np.pi) * n).astype(int), 0, n - 1)
+    true = np.einsum("nij,nj->ni", sweep[col, :3, :3], pts[:, :3]) + sweep[col, :3, 3]
+    raw_err = np.linalg.norm(transform_points(T[i], pts[:, :3]) - true, axis=1)
+    fixed = deskew_scan(pts, T[i - 1], T[i + 1])
+    fix_err = np.linalg.norm(transform_points(T[i], fixed[:, :3]) - true, axis=1)
+    # 1 m per 0.1 s sweep: up to 0.5 m at the start and end of the sweep
+    assert np.percentile(raw_err, 90) > 0.35 and np.median(raw_err) > 0.15
+    assert np.percentile(fix_err, 99) < 0.02
+    assert np.array_equal(fixed[:, 3], pts[:, 3])
+
+
+def test_movers_move_and_label_noise_hits_poles(realistic):
+    from graffmatch.datasets.simulator.movers import MOVING_CAR, MOVING_PERSON, place_movers
+    from graffmatch.datasets.simulator.realism import get_realism, noisy_labels
+
+    w, traj = realistic
+    mv = place_movers(w, np.random.default_rng(0), 6.0, 15.0)
+    assert (mv.cls == MOVING_CAR).sum() > 10 and (mv.cls == MOVING_PERSON).sum() > 10
+    step = np.linalg.norm(mv.positions(1.0) - mv.positions(0.0), axis=1)
+    assert np.median(step) > 0.7 and np.all(step <= 12.0 + 1e-9)  # some turn at a street end
+    T = traj.T_world_lidar[10]
+    dyn = mv.mesh(w, 0.0, T[:2, 3], radius=200.0)
+    _pts, labels = render_scan(w, T, "hdl64", 0, dynamic=dyn)
+    assert np.isin(labels & 0xFFFF, [MOVING_CAR, MOVING_PERSON]).sum() > 50
+    # label noise: about label_miss of the pole points lose their class, whole objects swap
+    _, clean = render_scan(w, T, "hdl64", 0)
+    cfg = get_realism("realistic")
+    noisy = noisy_labels(clean, cfg, np.random.default_rng(1))
+    pole = np.isin(clean & 0xFFFF, [80, 81, 71])
+    kept = np.mean((noisy[pole] & 0xFFFF) == (clean[pole] & 0xFFFF))
+    assert 1 - cfg.label_miss - 0.2 < kept < 1 - cfg.label_miss / 2
+    assert np.array_equal(noisy >> 16, clean >> 16)
+
+
+def test_gt_pose_noise_like_kitti(tmp_path):
+    from graffmatch.datasets.folder import KittiFolder
+
+    a = KittiFolder(simulate_dataset(tmp_path / "r", style="open-road", seed=2, n_scans=12,
+                                     realism="realistic"))  # fmt: skip
+    b = KittiFolder(simulate_dataset(tmp_path / "k", style="open-road", seed=2, n_scans=12,
+                                     realism="kitti-gt"))  # fmt: skip
+    err = np.linalg.norm(a.poses[:, :3, 3] - b.poses[:, :3, 3], axis=1)
+    assert 0.1 < np.median(err) < 1.0
+    assert (tmp_path / "r/velodyne/000005.bin").read_bytes() == (
+        tmp_path / "k/velodyne/000005.bin"
+    ).read_bytes()  # same scans, only the written poses differ

@@ -41,6 +41,8 @@ class BuildingsMixin:
             p = self._free_spot(lot, footprints, 1.5)
             if p is not None:
                 self._tree(p, trunk_radius=self.u((0.12, 0.3)), yard=True)
+        if cfg.hedge_prob > 0:
+            self._hedges(lot, footprints)
         for _ in range(self.rng.poisson(cfg.bush_rate * perim / 100)):
             p = self._free_spot(lot, footprints, 1.0)
             if p is not None:
@@ -152,6 +154,8 @@ class BuildingsMixin:
             f = _BOX_FACE[face]
             lm[2 * f : 2 * f + 2] = k
         self.mb.add(V, F, BUILDING, inst, lm)
+        if self.cfg.facade_detail:
+            self._facade_details(fp, side, float(g.min()), zt, inst)
 
     def _fence_or_wall(
         self, lot, side: str, a: float, b: float, inset: float, kind: str, footprints: list

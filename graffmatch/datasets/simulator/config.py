@@ -69,6 +69,28 @@ class WorldConfig(BaseModel):
     car_prob: float = Field(0.6, ge=0, le=1, description="P(a parking slot is occupied)")
     clutter_rate: float = Field(4.0, ge=0, description="clutter objects per 100 m of sidewalk")
     bush_rate: float = Field(0.0, ge=0, description="bushes per 100 m of lot side")
+    # realism (off in the style presets: the ``ideal`` worlds; see simulator/realism.py)
+    facade_detail: bool = Field(
+        False,
+        description="windows (glass: dropouts and returns from inside), sills, pilasters, "
+        "balconies and shop signs on the facades, so that facades are rough as in real scans",
+    )
+    facade_roughness_m: float = Field(
+        0.0,
+        ge=0,
+        description="sigma of sub-resolution relief on buildings, walls and fences (brick, "
+        "render, frames, downpipes), added along the ray by the sensor [m]",
+    )
+    balcony_prob: float = Field(0.0, ge=0, le=1, description="P(balcony) per upper-floor window")
+    shop_sign_prob: float = Field(0.0, ge=0, le=1, description="P(shop sign) per ground-floor bay")
+    leafy_vegetation: bool = Field(
+        False,
+        description="canopies, bushes and hedges of foliage: rays return from a random depth "
+        "inside them (scattered returns), not from a closed surface",
+    )
+    hedge_prob: float = Field(
+        0.0, ge=0, le=1, description="P(hedge) per stretch of lot edge behind the sidewalk"
+    )
 
 
 _PRESETS: dict[str, dict] = {

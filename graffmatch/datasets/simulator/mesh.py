@@ -58,6 +58,11 @@ CATEGORIES = {
     "utility_pole": 13,
 }
 
+#: Surface materials (``World.tri_material``): how the sensor treats a hit.
+OPAQUE = 0
+GLASS = 1  # windows: many rays drop out, the rest return from inside the building
+FOLIAGE = 2  # leaves: rays return from a random depth inside the crown or hedge
+
 #: Height of sidewalks and lots above the road surface [m].
 CURB_HEIGHT = 0.15
 
@@ -87,6 +92,15 @@ def _box(lo: NDArray, hi: NDArray) -> tuple[NDArray, NDArray]:
     """Axis-aligned box; triangles 2f, 2f+1 belong to face f in the order -x +x -y +y -z +z."""
     LH = np.array([lo, hi], dtype=float)
     return LH[_BOX_BITS, _BOX_AXES], _BOX_TRIS
+
+
+def _boxes(lo: NDArray, hi: NDArray) -> tuple[NDArray, NDArray]:
+    """Many axis-aligned boxes at once: (8n, 3) vertices and (12n, 3) triangles."""
+    lo, hi = np.atleast_2d(lo).astype(float), np.atleast_2d(hi).astype(float)
+    LH = np.stack([lo, hi], axis=1)  # (n, 2, 3)
+    V = LH[:, _BOX_BITS, _BOX_AXES].reshape(-1, 3)
+    F = (_BOX_TRIS[None] + 8 * np.arange(len(lo))[:, None, None]).reshape(-1, 3)
+    return V, F
 
 
 def _cylinder(base: NDArray, radius: float, height: float, n_seg: int = 12):
@@ -146,6 +160,7 @@ class _MeshBuilder:
         self.cls: list[NDArray] = []
         self.inst: list[NDArray] = []
         self.lm: list[NDArray] = []
+        self.mat: list[NDArray] = []
         self.nv = 0
         self.next_instance = 1
         self.landmarks: list[dict] = []
@@ -157,7 +172,7 @@ class _MeshBuilder:
             raise InvalidInputError("world has more than 65535 object instances")
         return i
 
-    def add(self, V: NDArray, F: NDArray, cls, inst, lm=-1) -> None:
+    def add(self, V: NDArray, F: NDArray, cls, inst, lm=-1, material: int = OPAQUE) -> None:
         m = len(F)
         self.V.append(np.asarray(V, float))
         self.F.append(np.asarray(F, np.int64) + self.nv)
@@ -168,6 +183,7 @@ class _MeshBuilder:
             (self.lm, lm, np.int32),
         ):
             store.append(np.full(m, v, dt) if np.isscalar(v) else np.asarray(v, dt).reshape(m))
+        self.mat.append(np.full(m, material, np.uint8))
 
     def add_plane(self, normal, anchor, box, class_id: int, category: str, instance: int) -> int:
         n = np.asarray(normal, float)

@@ -5,7 +5,10 @@ triangle hit. Range noise is Gaussian along the ray, so a returned point keeps t
 elevation of its beam (which is what real spinning LiDARs do to first order). Rays drop out at
 random, at grazing incidence, beyond the maximum range, and increasingly beyond half of it
 for dark or oblique surfaces (weak echoes). Intensity is a Lambertian-ish reflectivity model:
-a per-class albedo times the cosine of the incidence angle, fading with range. Motion distortion within a sweep is not modelled: every scan is taken at one pose.
+a per-class albedo times the cosine of the incidence angle, fading with range. With ``sweep`` poses each azimuth column is cast from its own pose (motion distortion, see
+``motion.py``); ``dynamic`` adds moving objects; glass (``mesh.GLASS``) drops many rays and
+returns the rest from inside the building; foliage (``mesh.FOLIAGE``) returns from a random
+depth inside the crown.
 """
 
 from __future__ import annotations
@@ -135,7 +138,7 @@ _ALBEDO = np.full(256, 0.35, np.float32)
 for _cls, _alb in {
     W.ROAD: 0.22, W.SIDEWALK: 0.32, W.TERRAIN: 0.38, W.BUILDING: 0.42, W.FENCE: 0.30,
     W.VEGETATION: 0.48, W.TRUNK: 0.30, W.POLE: 0.50, W.TRAFFIC_SIGN: 0.95, W.CAR: 0.28,
-    W.OTHER_OBJECT: 0.40,
+    W.OTHER_OBJECT: 0.40, 252: 0.28, 254: 0.35,
 }.items():  # fmt: skip
     _ALBEDO[_cls] = _alb
 
@@ -161,12 +164,17 @@ def render_scan(
     profile: str | SensorProfile = "hdl64",
     rng: np.random.Generator | int | None = None,
     return_landmarks: bool = False,
+    sweep: NDArray | None = None,
+    dynamic: tuple | None = None,
 ):
     """Scan ``world`` from pose ``T_world_lidar``.
 
     Returns ``(points (N, 4) float32 [x y z intensity] in the sensor frame, labels (N,) uint32)``
     with label = (instance << 16) | class; with ``return_landmarks`` also ``(N,) int32`` indices of
     the GT landmark each point sampled (-1 for none), for checking extraction.
+    ``sweep``: (n_columns, 4, 4) pose of each azimuth column (motion distortion; points stay
+    in the frame of the pose they were taken from, as a real raw scan). ``dynamic``:
+    (vertices, triangles, tri_class, tri_instance) of moving objects at this scan's time.
     """
     import open3d as o3d
 
@@ -176,31 +184,75 @@ def render_scan(
     d_sensor = prof.ray_directions()
     R, t = T[:3, :3], T[:3, 3]
     rays = np.empty((len(d_sensor), 6), np.float32)
-    rays[:, :3] = t
-    # column-wise rotation: a BLAS matmul with a 3-wide inner dimension is slow (and spins
-    # threads on a loaded machine); nine fused vector ops are ~50x faster here
     dT = _columns(d_sensor)
-    for k in range(3):
-        rays[:, 3 + k] = R[k, 0] * dT[0] + R[k, 1] * dT[1] + R[k, 2] * dT[2]
+    if sweep is None:
+        rays[:, :3] = t
+        # column-wise rotation: a BLAS matmul with a 3-wide inner dimension is slow (and spins
+        # threads on a loaded machine); nine fused vector ops are ~50x faster here
+        for k in range(3):
+            rays[:, 3 + k] = R[k, 0] * dT[0] + R[k, 1] * dT[1] + R[k, 2] * dT[2]
+    else:
+        S = np.asarray(sweep, float)
+        if S.shape != (prof.n_columns, 4, 4):
+            raise InvalidInputError(f"sweep must be ({prof.n_columns}, 4, 4), got {S.shape}")
+        # rays are beam-major: ray k is column k % n_columns
+        Rc = np.tile(S[:, :3, :3], (prof.n_beams, 1, 1))
+        rays[:, :3] = np.tile(S[:, :3, 3], (prof.n_beams, 1))
+        for k in range(3):
+            rays[:, 3 + k] = Rc[:, k, 0] * dT[0] + Rc[:, k, 1] * dT[1] + Rc[:, k, 2] * dT[2]
     ans = world.scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
     t_hit = ans["t_hit"].numpy()
     prim = ans["primitive_ids"].numpy()
     normals = ans["primitive_normals"].numpy()
+    albedo, tri_cls, tri_inst = _triangle_albedo(world), world.tri_class, world.tri_instance
+    tri_lm, tri_mat = world.tri_landmark, world.tri_material
+    if dynamic is not None:
+        t_hit, prim, normals, albedo, tri_cls, tri_inst, tri_lm, tri_mat = _with_dynamic(
+            rays, dynamic, t_hit, prim, normals, albedo, tri_cls, tri_inst, tri_lm, tri_mat
+        )
     hit = np.isfinite(t_hit) & (t_hit >= prof.min_range) & (t_hit <= prof.max_range)
     idx = np.flatnonzero(hit)
     nT = normals[idx].T
     cos_inc = np.abs(nT[0] * rays[idx, 3] + nT[1] * rays[idx, 4] + nT[2] * rays[idx, 5])
     # the echo weakens with range and with dark, oblique surfaces: beyond half the maximum
     # range, returns fade out (quadratically) unless the surface is bright and square-on
-    echo = _triangle_albedo(world)[prim[idx]] * (0.3 + 0.7 * cos_inc)
+    echo = albedo[prim[idx]] * (0.3 + 0.7 * cos_inc)
     far = np.clip((t_hit[idx] - 0.5 * prof.max_range) / (0.5 * prof.max_range), 0.0, 1.0)
     p_drop = prof.dropout_prob + far**2 * (1.0 - np.minimum(echo, 1.0))
     keep = (cos_inc >= prof.grazing_cos) & (rng.random(len(idx)) >= p_drop)
     idx, echo = idx[keep], echo[keep]
     r = t_hit[idx] + rng.normal(0.0, prof.range_noise_std, len(idx)).astype(np.float32)
     tri = prim[idx]
-    cls = world.tri_class[tri]
-    inst = world.tri_instance[tri]
+    lm_hit = tri_lm[tri]
+    glass = tri_mat[tri] == W.GLASS
+    if glass.any():
+        # windows: 40 % of the rays return nothing, the rest from the room behind the pane
+        # (a curtain or wall 0.3-3 m inside, fixed per pane, with furniture: 10 cm spread)
+        g = np.flatnonzero(glass)
+        gone = rng.random(len(g)) < 0.4
+        pane = (tri[g].astype(np.uint64) // np.uint64(2)) * np.uint64(2654435761)
+        depth = 0.3 + 2.7 * ((pane % np.uint64(1000)).astype(np.float32) / 1000.0)
+        r[g] += (depth + rng.normal(0.0, 0.1, len(g))).astype(np.float32)
+        lm_hit = np.where(glass, -1, lm_hit)
+        keep = np.ones(len(idx), bool)
+        keep[g[gone]] = False
+        idx, echo, r, tri, lm_hit = idx[keep], echo[keep], r[keep], tri[keep], lm_hit[keep]
+        echo = echo * np.where(glass[keep], 0.5, 1.0).astype(np.float32)
+    foliage = tri_mat[tri] == W.FOLIAGE
+    if foliage.any():
+        # leaves: the echo comes from a leaf at an exponential depth (mean 0.5 m) into the
+        # crown, and 15 % of the rays find a gap and return nothing
+        f = np.flatnonzero(foliage)
+        r[f] += np.minimum(rng.exponential(0.5, len(f)), 2.0).astype(np.float32)
+        keep = np.ones(len(idx), bool)
+        keep[f[rng.random(len(f)) < 0.15]] = False
+        idx, echo, r, tri, lm_hit = idx[keep], echo[keep], r[keep], tri[keep], lm_hit[keep]
+    cls = tri_cls[tri]
+    inst = tri_inst[tri]
+    rough = float(getattr(world.config, "facade_roughness_m", 0.0))
+    if rough > 0:
+        built = np.flatnonzero(np.isin(cls, (W.BUILDING, W.FENCE)))
+        r[built] += rng.normal(0.0, rough, len(built)).astype(np.float32)
     inten = _INTENSITY_GAIN * echo * (1.0 - 0.4 * r / prof.max_range)
     inten = inten + rng.normal(0.0, prof.intensity_noise_std, len(idx)).astype(np.float32)
     pts = np.empty((len(idx), 4), np.float32)
@@ -209,5 +261,31 @@ def render_scan(
     pts[:, 3] = np.clip(inten, 0.0, 1.0)
     labels = (inst.astype(np.uint32) << np.uint32(16)) | cls.astype(np.uint32)
     if return_landmarks:
-        return pts, labels, world.tri_landmark[tri]
+        return pts, labels, lm_hit
     return pts, labels
+
+
+def _with_dynamic(rays, dynamic, t_hit, prim, normals, albedo, tri_cls, tri_inst, tri_lm, tri_mat):
+    """Merge the first hits on moving objects (their own small scene) with the static ones;
+    dynamic triangles get ids after the world's, and per-triangle arrays are extended."""
+    import open3d as o3d
+
+    V, F, dcls, dinst = dynamic
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor.from_numpy(np.ascontiguousarray(V, np.float32)),
+        o3d.core.Tensor.from_numpy(np.ascontiguousarray(F, np.uint32)),
+    )
+    ans = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
+    td = ans["t_hit"].numpy()
+    closer = td < t_hit
+    n_static = len(tri_cls)
+    t_hit = np.where(closer, td, t_hit)
+    prim = np.where(closer, ans["primitive_ids"].numpy().astype(np.int64) + n_static, prim)
+    normals = np.where(closer[:, None], ans["primitive_normals"].numpy(), normals)
+    albedo = np.concatenate([albedo, _ALBEDO[np.asarray(dcls) & 0xFF] * 0.9])
+    tri_cls = np.concatenate([tri_cls, np.asarray(dcls, tri_cls.dtype)])
+    tri_inst = np.concatenate([tri_inst, np.asarray(dinst, tri_inst.dtype)])
+    tri_lm = np.concatenate([tri_lm, np.full(len(dcls), -1, tri_lm.dtype)])
+    tri_mat = np.concatenate([tri_mat, np.zeros(len(dcls), tri_mat.dtype)])
+    return t_hit, prim, normals, albedo, tri_cls, tri_inst, tri_lm, tri_mat

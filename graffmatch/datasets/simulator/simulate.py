@@ -13,6 +13,9 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from graffmatch.datasets.simulator import writer
+from graffmatch.datasets.simulator.motion import perturb_poses, sweep_poses, sweep_twist
+from graffmatch.datasets.simulator.movers import place_movers
+from graffmatch.datasets.simulator.realism import RealismConfig, get_realism, noisy_labels
 from graffmatch.datasets.simulator.sensor import SensorProfile, get_profile, render_scan
 from graffmatch.datasets.simulator.trajectory import (
     TrajectoryConfig,
@@ -25,12 +28,32 @@ from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.geometry.transforms import invert
 
 #: Bumped whenever the world, sensor or trajectory model changes what a seed produces.
-SIMULATOR_VERSION = "1.0"
+SIMULATOR_VERSION = "1.1"
 DEFAULT_N_SCANS = 300
 
 
 def _scan_rng(seed: int, index: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), 0x5CA9, int(index)])
+
+
+def realistic_world_config(cfg: WorldConfig, realism: RealismConfig) -> WorldConfig:
+    """``cfg`` with the realism preset's world overrides for its style."""
+    over = realism.world_overrides(cfg.style)
+    if not over:
+        return cfg
+    return WorldConfig.model_validate({**cfg.model_dump(), **over})
+
+
+def _sweep_twists(T: NDArray) -> NDArray:
+    """(n, 6) constant-velocity motion per sweep at every scan, from its neighbours."""
+    n = len(T)
+    if n == 1:
+        return np.zeros((1, 6))
+    out = np.empty((n, 6))
+    for i in range(n):
+        a, b = max(i - 1, 0), min(i + 1, n - 1)
+        out[i] = sweep_twist(T[a], T[b], float(b - a))
+    return out
 
 
 def gt_landmarks_in_scan(
@@ -75,18 +98,23 @@ def simulate_dataset(
     reuse: bool = False,
     progress: Callable[[int, int], None] | None = None,
     profile: str | SensorProfile | None = None,
+    realism: str | RealismConfig | None = None,
 ) -> Path:
     """Simulate a drive and write it as a KITTI-layout folder; returns ``out_dir``.
 
-    Same (style or world_config, seed, n_scans, sensor, trajectory_config) -> identical bytes of
-    every scan, label, pose and calib file. ``profile`` is an alias of ``sensor``. With
-    ``reuse``, a folder already holding a complete simulation of the same request is kept as is.
+    Same (style or world_config, seed, n_scans, sensor, trajectory_config, realism) ->
+    identical bytes of every scan, label, pose and calib file. ``profile`` is an alias of
+    ``sensor``. ``realism``: ``ideal`` (default: clean world, static, exact labels and poses),
+    ``realistic`` or ``kitti-gt`` (see ``realism.py``). With ``reuse``, a folder already
+    holding a complete simulation of the same request is kept as is.
     """
     out = Path(out_dir)
     n = DEFAULT_N_SCANS if n_scans is None else int(n_scans)
     if n < 1:
         raise InvalidInputError("n_scans must be >= 1")
     cfg = world_config if world_config is not None else world_preset(style)
+    real = get_realism(realism)
+    cfg = realistic_world_config(cfg, real)
     prof = get_profile(profile if profile is not None else sensor)
     tcfg = trajectory_config or TrajectoryConfig(mount_height=prof.mount_height)
     request = {
@@ -99,6 +127,8 @@ def simulate_dataset(
         "sensor": prof.model_dump(mode="json"),
         "trajectory_config": tcfg.model_dump(mode="json"),
     }
+    if not real.is_ideal:  # ideal requests keep the exact metadata they always had
+        request["realism"] = real.model_dump(mode="json")
     if reuse and _is_complete(out, request):
         return out
     if out.exists() and any(out.iterdir()):
@@ -108,9 +138,21 @@ def simulate_dataset(
     out.mkdir(parents=True, exist_ok=True)
     world = build_world(cfg, seed)
     traj = plan_route(world, n, seed, tcfg)
+    movers = None
+    if real.moving_cars_per_km > 0 or real.pedestrians_per_km > 0:
+        movers = place_movers(
+            world, np.random.default_rng([int(seed), 0x3077]), real.moving_cars_per_km,
+            real.pedestrians_per_km,
+        )  # fmt: skip
+    twists = _sweep_twists(traj.T_world_lidar) if real.motion_distortion else None
     vis_scan, vis_lm, vis_cnt = [], [], []
     for i, T in enumerate(traj.T_world_lidar):
-        pts, labels, lm = render_scan(world, T, prof, _scan_rng(seed, i), return_landmarks=True)
+        sweep = None if twists is None else sweep_poses(T, twists[i], prof.n_columns)
+        dyn = None if movers is None else movers.mesh(world, float(traj.times[i]), T[:2, 3])
+        pts, labels, lm = render_scan(
+            world, T, prof, _scan_rng(seed, i), return_landmarks=True, sweep=sweep, dynamic=dyn
+        )
+        labels = noisy_labels(labels, real, np.random.default_rng([int(seed), 0x1AB, i]))
         writer.write_scan(out, i, pts, labels)
         c = np.bincount(lm[lm >= 0], minlength=len(world.landmarks))
         nz = np.flatnonzero(c)
@@ -119,7 +161,13 @@ def simulate_dataset(
         vis_cnt.append(c[nz])
         if progress is not None:
             progress(i + 1, n)
-    writer.write_poses(out / "poses.txt", traj.T_world_lidar)
+    poses = traj.T_world_lidar
+    if real.gt_pose_noise_m > 0 or real.gt_pose_noise_deg > 0:
+        poses = perturb_poses(
+            poses, np.random.default_rng([int(seed), 0x9057]), real.gt_pose_noise_m,
+            real.gt_pose_noise_deg,
+        )  # fmt: skip
+    writer.write_poses(out / "poses.txt", poses)
     writer.write_calib(out / "calib.txt")
     writer.write_times(out / "times.txt", traj.times)
     world.landmarks.save(out / "landmarks_gt.npz")
@@ -255,6 +303,9 @@ class SuiteSpec(BaseModel):
         default_factory=dict,
         description="WorldConfig fields changed from the style's preset (block variety, trees)",
     )
+    realism: str = Field(
+        "realistic", description="realism preset (simulator/realism.py); 'ideal' = clean worlds"
+    )
 
     def world_config(self) -> WorldConfig:
         """The style's preset with this suite's overrides, validated."""
@@ -317,5 +368,5 @@ def simulate_suite(name: str, out_root: str | Path, **kwargs) -> Path:
         seed=s.seed,
         sensor=s.sensor,
         world_config=s.world_config(),
-        **kwargs,
+        **{"realism": s.realism, **kwargs},
     )

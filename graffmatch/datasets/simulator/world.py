@@ -19,6 +19,7 @@ from numpy.typing import NDArray
 
 from graffmatch.datasets.simulator.buildings import BuildingsMixin
 from graffmatch.datasets.simulator.config import STYLES, WorldConfig, world_preset
+from graffmatch.datasets.simulator.facades import FacadeDetailMixin
 from graffmatch.datasets.simulator.furniture import StreetFurnitureMixin
 from graffmatch.datasets.simulator.layout import LayoutMixin, _pwl, _pwl_slope
 from graffmatch.datasets.simulator.mesh import (
@@ -28,6 +29,9 @@ from graffmatch.datasets.simulator.mesh import (
     CLASS_COLOURS,
     CURB_HEIGHT,
     FENCE,
+    FOLIAGE,
+    GLASS,
+    OPAQUE,
     OTHER_OBJECT,
     POLE,
     ROAD,
@@ -44,7 +48,7 @@ from graffmatch.errors import InvalidInputError
 from graffmatch.geometry.landmarks import LandmarkSet
 
 __all__ = [
-    "BUILDING", "CAR", "CATEGORIES", "CLASS_COLOURS", "CURB_HEIGHT", "FENCE", "OTHER_OBJECT",
+    "BUILDING", "CAR", "CATEGORIES", "CLASS_COLOURS", "CURB_HEIGHT", "FENCE", "FOLIAGE", "GLASS", "OPAQUE", "OTHER_OBJECT",
     "POLE", "ROAD", "SIDEWALK", "STYLES", "TERRAIN", "TRAFFIC_SIGN", "TRUNK", "VEGETATION",
     "World", "WorldConfig", "build_world", "world_preset",
 ]  # fmt: skip
@@ -57,7 +61,8 @@ class World:
 
     vertices (V, 3) float32 and triangles (M, 3) uint32 in the world frame [m];
     tri_class (M,) uint16 SemanticKITTI class; tri_instance (M,) uint32 instance id (0 = stuff);
-    tri_landmark (M,) int32 index into ``landmarks`` or -1.
+    tri_landmark (M,) int32 index into ``landmarks`` or -1; tri_material (M,) uint8
+    (``mesh.OPAQUE``, ``mesh.GLASS`` or ``mesh.FOLIAGE``).
     street_x / street_y: centre lines of the streets running along y / along x.
     """
 
@@ -75,6 +80,11 @@ class World:
     heights_x: NDArray[np.float64]
     knots_y: NDArray[np.float64]
     heights_y: NDArray[np.float64]
+    tri_material: NDArray[np.uint8] | None = None
+
+    def __post_init__(self) -> None:
+        if self.tri_material is None:
+            self.tri_material = np.zeros(len(self.triangles), np.uint8)
 
     @property
     def road_half_width(self) -> float:
@@ -155,7 +165,7 @@ def build_world(config: WorldConfig | str = "downtown", seed: int = 0) -> World:
     return _Generator(cfg, rng, int(seed)).run()
 
 
-class _Generator(LayoutMixin, BuildingsMixin, StreetFurnitureMixin, VegetationMixin, VehiclesMixin):
+class _Generator(LayoutMixin, BuildingsMixin, FacadeDetailMixin, StreetFurnitureMixin, VegetationMixin, VehiclesMixin):
     """One-shot world generation; Python loops run over objects (hundreds), never points."""
 
     def __init__(self, cfg: WorldConfig, rng: np.random.Generator, seed: int) -> None:
@@ -164,6 +174,9 @@ class _Generator(LayoutMixin, BuildingsMixin, StreetFurnitureMixin, VegetationMi
         # exactly the draws (and bytes) they had before it existed.
         self.block_rng = np.random.default_rng([seed, 0xB10C])
         self.mb = _MeshBuilder()
+        # Realism details (facade relief, leaves) draw from their own stream, so a world with
+        # them has exactly the layout of the same world without them.
+        self.detail_rng = np.random.default_rng([seed, 0xFACADE])
         self.hw = cfg.lanes_per_direction * cfg.lane_width + cfg.parking_width
         self.cw = self.hw + cfg.sidewalk_width
 
@@ -186,5 +199,5 @@ class _Generator(LayoutMixin, BuildingsMixin, StreetFurnitureMixin, VegetationMi
             tri_class=np.concatenate(mb.cls), tri_instance=np.concatenate(mb.inst),
             tri_landmark=np.concatenate(mb.lm), landmarks=mb.landmark_set(),
             street_x=self.X, street_y=self.Y, knots_x=self.kx, heights_x=self.vx,
-            knots_y=self.ky, heights_y=self.vy,
+            knots_y=self.ky, heights_y=self.vy, tri_material=np.concatenate(mb.mat),
         )  # fmt: skip
