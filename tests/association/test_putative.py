@@ -54,7 +54,7 @@ def test_disabled_gating_is_all_to_all_and_gated_is_an_ordered_subset():
 def test_level_pair_gates_by_tilt_ground_and_ratios():
     s, t = _scene(), _scene(seed=1)
     assert is_level_pair(s, t, GatingConfig())
-    A = set(map(tuple, gated_associations(s, t).tolist()))
+    A = set(map(tuple, gated_associations(s, t, GatingConfig(radius_ratio=3.0, length_ratio=3.0)).tolist()))
     assert (0, 0) in A and (0, 1) in A  # vertical poles with close radii and lengths
     assert (0, 2) not in A  # a vertical pole never with a horizontal line
     assert (3, 3) in A and (3, 4) in A  # facades
