@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from graffmatch.association.clipper import ClipperConfig, solve_clipper
 from graffmatch.association.consistency_graph import build_consistency_graph
+from graffmatch.association.putative import GatingConfig, putative_associations
 from graffmatch.errors import DegenerateGeometryError, InvalidInputError
 from graffmatch.geometry.distance import pairwise_distances
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
@@ -42,13 +43,18 @@ class GraffMatchConfig(BaseModel):
         description="landmark types used (e.g. ['line'] for the line-only variant)",
     )
     solver: ClipperConfig = Field(
-        default_factory=lambda: ClipperConfig(greedy_starts=64, d_schedule="mean", rescale_u0=True),
+        default_factory=lambda: ClipperConfig(greedy_starts=64, d_schedule="mean", rescale_u0=True,
+                                              tol_u=1e-3, tol_F=1e-4),
         description=(
             "CLIPPER settings; GraffMatch also lets 64 greedy cliques compete on the same "
             "densest-clique objective (greedy_starts=0 for CLIPPER alone), and uses the current "
             "reference C++ homotopy (mean d steps, rescaled start): 3-4x fewer mat-vecs on "
             "~30 %-dense landmark graphs, same selections in bench/bench_matcher.py"
         ),
+    )
+    gating: GatingConfig = Field(
+        default_factory=GatingConfig,
+        description="putative associations: same-type pairs whose view-robust attributes agree",
     )
     kappa_max: float = Field(1e3, gt=1, description="condition number above which the estimate is degenerate")
     min_associations: int = Field(3, ge=1, description="fewest selected associations for a valid result")
@@ -260,6 +266,8 @@ class GraffMatcher:
             inv_t[tgt_idx] = np.arange(len(tgt_idx))
             A = np.stack([inv_s[A[:, 0]], inv_t[A[:, 1]]], 1)
             associations = A[(A >= 0).all(1)]
+        else:
+            associations = putative_associations(src, tgt, cfg.gating)  # None: all same-type
         if len(src) < 2 or len(tgt) < 2:
             raise InvalidInputError(
                 f"too few landmarks of types {cfg.landmark_types}: source {len(src)}, target {len(tgt)}"
