@@ -1,0 +1,75 @@
+"""Sequence-level loop-closure benchmark (issue 15): ours vs Scan Context + ICP (and MapClosures
+with ground-truth poses), on simulated drives with revisits and on balm_courtyard.
+
+    PYTHONPATH=$PWD python bench/bench_loops.py --prepare            # simulate + extract (untimed)
+    flock /tmp/bench.lock env PYTHONPATH=$PWD python bench/bench_loops.py --json bench/results/loops.json
+
+Drives (300 scans each, 1 m apart; routes chosen for revisits incl. reverse-direction ones):
+downtown seeds 1 and 5, suburban 1 and 4, open-road 1 and 3 (1800 scans), each with its
+suite's world and sensor.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine, peak_rss_mb  # noqa: E402
+
+DRIVES = [("sim-downtown", 1), ("sim-downtown", 5), ("sim-suburban", 1), ("sim-suburban", 4),
+          ("sim-openroad", 1), ("sim-openroad", 3)]
+N_SCANS = 300
+COURTYARD = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "balm_courtyard"
+
+
+def simulate(root: Path, n_scans: int) -> list[Path]:
+    from graffmatch.datasets.simulator import SUITES, simulate_dataset
+
+    out = []
+    for name, seed in DRIVES:
+        s = SUITES[name]
+        out.append(simulate_dataset(root / f"{name}-s{seed}", style=s.style, seed=seed, n_scans=n_scans,
+                                    sensor=s.sensor, world_config=s.world_config(), reuse=True))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=Path("/tmp/loops_bench/data"))
+    ap.add_argument("--out", type=Path, default=Path("/tmp/loops_bench/out"))
+    ap.add_argument("--scans", type=int, default=N_SCANS)
+    ap.add_argument("--prepare", action="store_true", help="only simulate and extract (untimed)")
+    ap.add_argument("--methods", nargs="+", default=["ours", "scan-context-icp", "mapclosures-gt"])
+    ap.add_argument("--no-courtyard", action="store_true")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+
+    from graffmatch.evaluation.sequence_benchmark import benchmark_config, run_sequence_benchmark
+
+    seqs = simulate(args.data, args.scans)
+    if not args.no_courtyard and COURTYARD.is_dir():
+        seqs.append(COURTYARD.resolve())
+    t0 = time.perf_counter()
+    methods = ["ours"] if args.prepare else args.methods
+    table = run_sequence_benchmark(seqs, args.out, methods=methods, workers=args.workers,
+                                   config=benchmark_config(), extract_only=args.prepare)
+    wall = time.perf_counter() - t0
+    print(table)
+    print(f"wall {wall:.0f} s, peak RSS {peak_rss_mb():.0f} MB (driver)")
+    if args.json and not args.prepare:
+        res = json.loads((args.out / "results.json").read_text())
+        for r in res:
+            for k in list(r):
+                if isinstance(r[k], dict) and "curve" in r[k]:
+                    r[k] = {kk: vv for kk, vv in r[k].items() if kk != "curve"}
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"machine": machine(), "wall_s": wall, "table": table, "results": res}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
