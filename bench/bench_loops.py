@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, peak_rss_mb  # noqa: E402
+from _common import machine, peak_rss_mb
 
 DRIVES = [("sim-downtown", 1), ("sim-downtown", 5), ("sim-suburban", 1), ("sim-suburban", 4),
           ("sim-openroad", 1), ("sim-openroad", 3)]
