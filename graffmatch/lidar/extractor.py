@@ -20,11 +20,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from graffmatch.errors import InvalidInputError
+from graffmatch.errors import InvalidInputError, PrecisionLossWarning
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.lidar._stats import subsample_groups
 from graffmatch.lidar.ground import GroundConfig, segment_ground
-from graffmatch.lidar.io import semantic_class
+from graffmatch.lidar.io import PRECISION_TOLERANCE, semantic_class
 from graffmatch.lidar.planes import PlaneConfig, drop_ground_duplicates, extract_planes
 from graffmatch.lidar.poles import PoleConfig, PoleResult, poles_geometric, poles_semantic
 
@@ -391,6 +391,16 @@ class LandmarkExtractor:
             T = np.eye(4)
             T[:3, 3] = offset
             out = out.transform(T)
+            # Anchors are float64 and exact; support points are float32 in the far frame.
+            step = float(np.abs(offset).max()) * 2.0**-24
+            if out.points is not None and len(out.points) and step > PRECISION_TOLERANCE:
+                warnings.warn(
+                    f"far cloud (offset {offset.tolist()} m): landmark support points are float32 "
+                    f"and moved by up to {step:.2g} m; extract from read_scan(...).points and map "
+                    "the transform back with restore_offsets",
+                    PrecisionLossWarning,
+                    stacklevel=2,
+                )
         timings["assemble"] = time.perf_counter() - t
         cpu["assemble"] = time.process_time() - c
         timings["total"] = time.perf_counter() - t0

@@ -98,3 +98,26 @@ def test_out_of_range_message_counts_points(rng) -> None:
     far = np.c_[rng.uniform(100, 200, (500, 2)), rng.uniform(-2, 2, 500)]
     with pytest.warns(RuntimeWarning, match="only 0 of 500 finite points lie within"):
         LandmarkExtractor().extract(far)
+
+
+def test_far_cloud_support_points_warn_and_read_scan_path_is_exact(tmp_path) -> None:
+    """Extracting a UTM cloud directly keeps float64 anchors but float32 support points (0.25 m
+    steps at 4.6e6 m): it says so. Through read_scan the landmarks equal the sensor-frame ones."""
+    from graffmatch.errors import PrecisionLossWarning
+    from graffmatch.lidar.io import read_scan
+
+    scene = make_scene(seed=0)
+    utm = np.array([500000.0, 4600000.0, 0.0])
+    world = scene.points.astype(np.float64)
+    world[:, :3] += utm
+    with pytest.warns(PrecisionLossWarning, match="restore_offsets"):
+        LandmarkExtractor().extract(world)
+    np.save(tmp_path / "w.npy", world)
+    scan = read_scan(tmp_path / "w.npy")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PrecisionLossWarning)
+        local = LandmarkExtractor().extract(scan.points)
+    near = LandmarkExtractor().extract(scene.points)
+    np.testing.assert_array_equal(scan.origin, utm)
+    assert local.counts() == near.counts()
+    np.testing.assert_allclose(local.anchors, near.anchors, atol=1e-6)
