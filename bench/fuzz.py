@@ -513,7 +513,10 @@ def run(kinds: list[str], n: dict[str, int], seed: int, slow: float, quiet: bool
                 dt = time.perf_counter() - t
                 st["max_s"] = max(st["max_s"], dt)
                 st["total_s"] += dt
-                st["slow"] += dt > slow
+                if dt > slow:
+                    st["slow"] += 1
+                    foreign.append({"label": label, "kind": kind, "i": i, "type": "slow",
+                                    "message": f"{dt:.1f} s", "where": ""})  # fmt: skip
                 if err.size() > before:
                     st["stderr"] += 1
                     if st["stderr"] <= 3:

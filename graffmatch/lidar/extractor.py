@@ -34,6 +34,10 @@ Array = NDArray[np.float64]
 #: in metres: ranges end at ~100-300 m. It is taken as a scan in other units (see units_hint).
 UNITS_EXTENT_LIMIT = 2000.0
 
+#: Points further than this from the (possibly recentred) cloud's origin are dropped with a
+#: warning: no LiDAR map spans 10,000 km, and grid indices of such values overflow int64.
+MAX_COORDINATE = 1e7
+
 #: Plausible span of one scan in metres, used to say which unit an oversized cloud is in.
 PLAUSIBLE_SPAN = (10.0, 400.0)
 
@@ -202,6 +206,16 @@ class LandmarkExtractor:
             if np.linalg.norm(med) > cfg.recenter_distance and self._extent < np.linalg.norm(med):
                 offset = np.round(med, 0)
                 P = P - offset
+        if P.shape[0] and float(np.abs(P).max()) > MAX_COORDINATE:
+            wild = np.abs(P).max(axis=1) > MAX_COORDINATE
+            warnings.warn(
+                f"dropped {int(wild.sum())} of {P.shape[0]} points further than "
+                f"{MAX_COORDINATE:g} m from the cloud's centre",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+            P = P[~wild]
+            lab = None if lab is None else lab[~wild]
         r = np.sqrt(P[:, 0] ** 2 + P[:, 1] ** 2 + P[:, 2] ** 2)
         keep = r >= cfg.min_range
         if cfg.max_range is not None and not np.any(offset):

@@ -121,3 +121,22 @@ def test_far_cloud_support_points_warn_and_read_scan_path_is_exact(tmp_path) -> 
     np.testing.assert_array_equal(scan.origin, utm)
     assert local.counts() == near.counts()
     np.testing.assert_allclose(local.anchors, near.anchors, atol=1e-6)
+
+
+def test_absurdly_far_points_are_dropped_not_overflowed(rng) -> None:
+    """Finite but absurd coordinates (1e300, 3.5e38) once overflowed the ground grid's int64
+    indices (an IndexError from ground.py, found by bench/fuzz.py extract #941)."""
+    cloud = np.r_[rng.normal(scale=1e300, size=(300, 3)), rng.normal(scale=3.5e38, size=(300, 3))]
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        try:
+            out = LandmarkExtractor().extract(cloud)
+            assert len(out) == 0
+        except GraffMatchError:
+            pass
+    utm = make_scene(seed=0).points.astype(np.float64)
+    utm[:, :3] += [500000.0, 4600000.0, 0.0]
+    utm[:5, :3] = 1e300  # five corrupt rows in an otherwise good UTM cloud
+    with pytest.warns(RuntimeWarning, match="dropped 5 of"):
+        out = LandmarkExtractor().extract(utm)
+    assert out.counts()["planes"] >= 4
