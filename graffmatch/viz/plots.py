@@ -16,19 +16,7 @@ from numpy.typing import ArrayLike
 
 from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.geometry.transforms import transform_points
-from graffmatch.viz.scene import (
-    INLIER_COLOR,
-    OUTLIER_COLOR,
-    SOURCE_COLOR,
-    SOURCE_LANDMARK_COLOR,
-    TARGET_COLOR,
-    TARGET_LANDMARK_COLOR,
-    UNKNOWN_COLOR,
-    check_match,
-    downsample,
-    plane_quads,
-    pole_segments,
-)
+from graffmatch.viz import scene
 
 if TYPE_CHECKING:  # pragma: no cover
     from matplotlib.axes import Axes
@@ -37,7 +25,7 @@ if TYPE_CHECKING:  # pragma: no cover
 def _draw_landmarks(ax: Axes, ls: LandmarkSet, color: str, label: str) -> None:
     from matplotlib.collections import PolyCollection
 
-    _, s, e = pole_segments(ls)
+    _, s, e = scene.pole_segments(ls)
     if len(s):
         mid = (s + e) / 2
         ax.scatter(
@@ -51,7 +39,7 @@ def _draw_landmarks(ax: Axes, ls: LandmarkSet, color: str, label: str) -> None:
             label=f"{label} poles",
             zorder=4,
         )
-    _, corners = plane_quads(ls)
+    _, corners = scene.plane_quads(ls)
     if len(corners):
         polys = PolyCollection(
             corners[:, :, :2],
@@ -92,11 +80,11 @@ def plot_match_topdown(
         matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    T, assoc, mask = check_match(
+    T, assoc, mask = scene.check_match(
         source_landmarks, target_landmarks, T_target_source, associations, inlier_mask
     )
-    src_pts = downsample(source_points, max_points, seed=1)
-    tgt_pts = downsample(target_points, max_points, seed=2)
+    src_pts = scene.downsample(source_points, max_points, seed=1)
+    tgt_pts = scene.downsample(target_points, max_points, seed=2)
     if side_by_side:
         ext_t = np.concatenate([tgt_pts, target_landmarks.anchors, np.zeros((1, 3))])
         ext_s = np.concatenate([src_pts, source_landmarks.anchors, np.zeros((1, 3))])
@@ -110,21 +98,24 @@ def plot_match_topdown(
         _, ax = plt.subplots(figsize=(7, 7), dpi=dpi)
     src_placed = transform_points(T, src_pts) if len(src_pts) else src_pts
     for pts, color, label in (
-        (tgt_pts, TARGET_COLOR, "target scan"),
-        (src_placed, SOURCE_COLOR, "source scan"),
+        (tgt_pts, scene.TARGET_COLOR, "target scan"),
+        (src_placed, scene.SOURCE_COLOR, "source scan"),
     ):
         if len(pts):
             ax.scatter(pts[:, 0], pts[:, 1], s=0.3, c=color, alpha=0.5, lw=0, rasterized=True)
             ax.scatter([], [], s=12, c=color, label=label)  # legend proxy
-    _draw_landmarks(ax, target_landmarks, TARGET_LANDMARK_COLOR, "target")
-    _draw_landmarks(ax, placed, SOURCE_LANDMARK_COLOR, "source")
+    _draw_landmarks(ax, target_landmarks, scene.TARGET_LANDMARK_COLOR, "target")
+    _draw_landmarks(ax, placed, scene.SOURCE_LANDMARK_COLOR, "source")
     if len(assoc):
         a = placed.anchors[assoc[:, 0], :2]
         b = target_landmarks.anchors[assoc[:, 1], :2]
         if mask is None:
-            groups = [("correspondences", np.ones(len(assoc), bool), UNKNOWN_COLOR)]
+            groups = [("correspondences", np.ones(len(assoc), bool), scene.UNKNOWN_COLOR)]
         else:
-            groups = [("inliers", mask, INLIER_COLOR), ("outliers", ~mask, OUTLIER_COLOR)]
+            groups = [
+                ("inliers", mask, scene.INLIER_COLOR),
+                ("outliers", ~mask, scene.OUTLIER_COLOR),
+            ]
         for name, sel, color in groups:
             if np.any(sel):
                 xs = np.stack([a[sel, 0], b[sel, 0]])
