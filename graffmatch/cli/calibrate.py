@@ -11,6 +11,7 @@ import typer
 from graffmatch.cli.common import (
     EXIT_NOT_VALID,
     STATE,
+    ScaleOption,
     cli_errors,
     err,
     info,
@@ -69,6 +70,7 @@ def calibrate(
             "COLSxROWSxSQUARE[xMARGIN], e.g. 7x5x0.07."
         ),
     ] = None,
+    scale: ScaleOption = "1",
 ) -> None:
     """Extrinsic calibration from planar boards with GraffMatch (planes only, no initial guess).
 
@@ -105,8 +107,8 @@ def calibrate(
         )
     from graffmatch.cli.inputs import read_scan
 
-    a, _ = read_scan(cloud_a)
-    b, _ = read_scan(cloud_b)
+    a, _ = read_scan(cloud_a, scale=scale)
+    b, _ = read_scan(cloud_b, scale=scale)
     res = calibration.calibrate_lidar_lidar(a[:, :3], b[:, :3], cal.lidar_lidar)
     _print_calibration(res, ("T_b_a", "LiDAR A -> LiDAR B"), output)
 

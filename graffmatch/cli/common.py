@@ -18,7 +18,7 @@ from datetime import datetime, timezone
 from importlib.metadata import PackageNotFoundError
 from importlib.metadata import version as _pkg_version
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
 import numpy as np
 import typer
@@ -255,3 +255,45 @@ def print_matrix(T: Any, title: str, note: str = "") -> None:
     out.print(f"[bold]{title}[/bold]" + (f" ({note})" if note else ""))
     for r in np.asarray(T, dtype=float):
         out.print("  " + " ".join(f"{v:+10.5f}" for v in r))
+
+
+def parse_scale(value: str) -> float | str:
+    """``--scale``: a factor to metres or a unit name; a bad one is a usage error (exit 2)."""
+    from graffmatch.lidar.io import resolve_scale
+
+    try:
+        scale: float | str = float(value)
+    except ValueError:
+        scale = value
+    try:
+        resolve_scale(scale)
+    except GraffMatchError as exc:
+        raise typer.BadParameter(str(exc)) from None
+    return scale
+
+
+#: The ``--scale`` option of every command that reads scans.
+ScaleOption = Annotated[
+    str,
+    typer.Option(
+        "--scale",
+        callback=parse_scale,
+        help="Metres per unit of the scan files: a factor (0.01) or a unit (m, dm, cm, mm, km); "
+        "for clouds stored in centimetres or millimetres.",
+    ),
+]
+
+
+@contextmanager
+def in_cli_words(words: dict[str, str]) -> Iterator[None]:
+    """Re-raise library errors with their Python spelling replaced by the CLI's (e.g.
+    ``overwrite=True`` -> ``--overwrite``): a user of the command never wrote Python."""
+    try:
+        yield
+    except GraffMatchError as exc:
+        text = str(exc)
+        for python, cli in words.items():
+            text = text.replace(python, cli)
+        if text == str(exc):
+            raise
+        raise type(exc)(text) from exc

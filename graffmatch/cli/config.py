@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from enum import Enum
 from pathlib import Path
 from typing import Annotated
 
@@ -20,6 +21,16 @@ from graffmatch.cli.common import (
 )
 
 commands = typer.Typer()
+
+
+class DemoMode(str, Enum):
+    """Demo modes; typer rejects any other value as bad usage (exit code 2)."""
+
+    auto = "auto"
+    lidar = "lidar"
+    landmarks = "landmarks"
+
+
 config_app = typer.Typer(help="Show or check the whole configuration (YAML).", no_args_is_help=True)
 
 
@@ -34,12 +45,12 @@ config_app = typer.Typer(help="Show or check the whole configuration (YAML).", n
 def demo(
     seed: Annotated[int, typer.Option(help="Seed of the scene and the transform.")] = 0,
     mode: Annotated[
-        str,
+        DemoMode,
         typer.Option(
             help="'lidar': simulated street scans -> extraction -> match; 'landmarks': "
             "landmark sets directly; 'auto': lidar."
         ),
-    ] = "auto",
+    ] = DemoMode.auto,
 ) -> None:
     """Run the built-in demo: match two views 180° and 14 m apart, print errors and timings.
 
@@ -49,7 +60,7 @@ def demo(
 
     t0 = time.perf_counter()
     with status("running the demo ..."):
-        report = run_demo(seed=seed, mode=mode, config=STATE.settings.matcher)
+        report = run_demo(seed=seed, mode=mode.value, config=STATE.settings.matcher)
     debug(f"demo finished in {time.perf_counter() - t0:.2f} s")
     out.print(report)
     if not report.passed:

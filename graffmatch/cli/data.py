@@ -5,13 +5,14 @@ from __future__ import annotations
 import time
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 import typer
 
 from graffmatch.cli.common import (
     STATE,
     cli_errors,
+    in_cli_words,
     info,
     make_progress,
     out,
@@ -65,16 +66,17 @@ def simulate(
         def tick(done: int, total: int) -> None:
             progress.update(task, completed=done, total=total)
 
-        folder = simulate_dataset(
-            output,
-            style=style,
-            seed=seed,
-            n_scans=scans,
-            sensor=sensor.value,
-            overwrite=overwrite,
-            reuse=reuse,
-            progress=tick,
-        )
+        with in_cli_words({"overwrite=True": "--overwrite", "reuse=True": "--reuse"}):
+            folder = simulate_dataset(
+                output,
+                style=style,
+                seed=seed,
+                n_scans=scans,
+                sensor=sensor.value,
+                overwrite=overwrite,
+                reuse=reuse,
+                progress=tick,
+            )
     n = len(list((Path(folder) / "velodyne").glob("*.bin")))
     info(
         f"simulated {n} scans ({style}, {sensor.value}, seed {seed}) in "
@@ -107,6 +109,7 @@ def build_dataset(
             out.print(f"{key:18s} {SUITES[key].description}")
         return
     from graffmatch.cli.settings import dump_model
+    from graffmatch.evaluation.loop_closures import summary_text
     from graffmatch.evaluation.suites import suite_config
 
     summary = build_suite(name, output, quick=quick, progress=not STATE.quiet)
@@ -115,12 +118,4 @@ def build_dataset(
     (folder / "config.yaml").write_text(
         dump_model(suite_config(name, quick), f"loop-closure rules of suite {name}")
     )
-    info(_summary_line(summary, folder))
-
-
-def _summary_line(summary: Any, folder: Path) -> str:
-    if not isinstance(summary, dict):
-        return f"built -> {folder}"
-    keys = ("n_places", "n_pairs", "n_valid", "cases", "total_s")
-    parts = [f"{k}={summary[k]}" for k in keys if k in summary]
-    return f"built {summary.get('suite', '')} -> {folder}  " + " ".join(parts)
+    info(f"built {name} -> {folder}\n{summary_text(summary)}")

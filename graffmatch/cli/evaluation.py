@@ -62,21 +62,26 @@ def benchmark(
     Writes <out>/results (one record per pair and method), <out>/report and the config. Rerun
     with the same -o to continue a killed run; 'graffmatch report <out>' rebuilds the report.
     """
-    from graffmatch.evaluation.benchmark import run_benchmark
+    from graffmatch.evaluation.benchmark import is_benchmark_complete, run_benchmark
 
+    args = {
+        "suites": list(suites or []) or None,
+        "quick": quick,
+        "methods": list(methods) if methods else None,
+        "data_dir": data_dir,
+    }
+    if output is not None and is_benchmark_complete(output, **args):
+        info(f"{output} is complete; nothing to do (another -o runs it again)")
+        return
     out_dir = output or run_dir(STATE.runs_dir, "benchmark")
-    out_dir.mkdir(parents=True, exist_ok=True)
     # run_benchmark writes the exact study configuration itself (results/config.json).
     res = run_benchmark(
-        suites=list(suites or []) or None,
         out_dir=out_dir,
-        quick=quick,
         executor=executor.value,
         address=address,
         workers=workers,
-        methods=list(methods) if methods else None,
-        data_dir=data_dir,
         progress=not STATE.quiet,
+        **args,
     )
     info(f"results -> {res}")
 

@@ -10,7 +10,7 @@ import json
 import re
 import time
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -81,19 +81,44 @@ def find_labels(scan: Path, explicit: Path | None, mode: str) -> Path | None:
     return cand if cand.exists() else None
 
 
-def read_scan(path: Path, labels: Path | None = None) -> tuple[NDArray, NDArray | None]:
-    """(N, 4) float32 points and optional (N,) uint32 labels."""
+def read_scan(
+    path: Path, labels: Path | None = None, scale: float | str = 1.0
+) -> tuple[NDArray, NDArray | None]:
+    """(N, 4) float32 points in the file's frame (times ``scale``) and optional (N,) labels.
+
+    For two clouds whose relative pose matters as stored (calibration); far (UTM) clouds warn
+    about float32 precision here, :func:`read_cloud` recentres them instead.
+    """
     from graffmatch.lidar.io import read_label, read_points
 
     require_file(path, "scan")
-    pts = read_points(path)
+    pts = read_points(path, scale=scale)
     lab = None if labels is None else read_label(labels, n_points=len(pts))
     return pts, lab
 
 
+def read_cloud(path: Path, labels: Path | None = None, scale: float | str = 1.0) -> Any:
+    """A :class:`graffmatch.lidar.io.Scan`: float32 points around a float64 origin (zero for
+    sensor-frame scans), so that UTM clouds keep their precision."""
+    from graffmatch.lidar.io import read_scan as read_recentred
+
+    require_file(path, "scan")
+    return read_recentred(path, scale=scale, labels=labels)
+
+
+#: A scan with fewer points cannot hold a landmark: an input error, not a result to compute.
+MIN_SCAN_POINTS = 4
+#: Landmarks an input needs before matching (the matcher's minimum).
+MIN_LANDMARKS = 2
+
+
 @dataclass
 class LoadedInput:
-    """A command-line input resolved to landmarks (and the scan points when it was a scan)."""
+    """A command-line input resolved to landmarks (and the scan points when it was a scan).
+
+    ``points`` and ``landmarks`` are relative to ``origin`` (float64, zeros unless the file
+    held far coordinates such as UTM): ``file frame = local + origin``.
+    """
 
     path: Path
     kind: Literal["scan", "landmarks"]
@@ -101,6 +126,7 @@ class LoadedInput:
     points: NDArray | None = None
     labels_path: Path | None = None
     timings: dict[str, float] | None = None
+    origin: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
 
 
 class LazyExtractor:
@@ -120,23 +146,41 @@ class LazyExtractor:
 
 
 def load_input(
-    path: Path, labels: Path | None, label_mode: str, extractor: LazyExtractor
+    path: Path,
+    labels: Path | None,
+    label_mode: str,
+    extractor: LazyExtractor,
+    scale: float | str = 1.0,
 ) -> LoadedInput:
-    """A scan (extracted now, with its timings) or a landmark file, as a LoadedInput."""
+    """A scan (extracted now, with its timings) or a landmark file, as a LoadedInput.
+
+    Raises an error naming the file when it cannot be matched: an empty or near-empty scan, or
+    fewer than two landmarks (the warnings printed before it say why, e.g. ``--scale``).
+    """
     if not path.exists():
         raise MalformedFileError(f"{path}: input not found")
     if path.is_dir():
         raise MalformedFileError(f"{path}: input is a folder; give one scan or one landmark file")
     if is_landmark_file(path):
-        return LoadedInput(path, "landmarks", LandmarkSet.load(path))
-    label_path = find_labels(path, labels, label_mode)
-    pts, lab = read_scan(path, label_path)
-    ex = extractor.get()
-    t0 = time.perf_counter()
-    ls = ex.extract(pts, lab)
-    timings = dict(ex.last_timings)
-    timings.setdefault("total", time.perf_counter() - t0)
-    return LoadedInput(path, "scan", ls, pts, label_path, timings)
+        loaded = LoadedInput(path, "landmarks", LandmarkSet.load(path))
+    else:
+        label_path = find_labels(path, labels, label_mode)
+        scan = read_cloud(path, label_path, scale)
+        if len(scan) < MIN_SCAN_POINTS:
+            what = "is empty (0 points)" if len(scan) == 0 else f"has only {len(scan)} point(s)"
+            raise InvalidInputError(f"{path}: the scan {what}; nothing to extract landmarks from")
+        ex = extractor.get()
+        t0 = time.perf_counter()
+        ls = ex.extract(scan.points, scan.labels)
+        timings = dict(ex.last_timings)
+        timings.setdefault("total", time.perf_counter() - t0)
+        loaded = LoadedInput(path, "scan", ls, scan.points, label_path, timings, scan.origin)
+    if len(loaded.landmarks) < MIN_LANDMARKS:
+        raise InvalidInputError(
+            f"{path}: {len(loaded.landmarks)} landmark(s) ({counts_text(loaded.landmarks)}); "
+            f"at least {MIN_LANDMARKS} are needed to match"
+        )
+    return loaded
 
 
 def counts_text(ls: LandmarkSet) -> str:

@@ -20,6 +20,7 @@ from graffmatch.cli.common import (
     EXIT_NOT_VALID,
     MAX_TABLE_ROWS,
     STATE,
+    ScaleOption,
     __version__,
     cli_errors,
     err,
@@ -28,6 +29,7 @@ from graffmatch.cli.common import (
     make_progress,
     now,
     out,
+    parse_scale,
     print_matrix,
     run_dir,
     stage,
@@ -37,6 +39,7 @@ from graffmatch.cli.common import (
 )
 from graffmatch.cli.inputs import LazyExtractor, counts_text, load_input
 from graffmatch.errors import GraffMatchError, InvalidInputError, MalformedFileError
+from graffmatch.geometry.transforms import restore_offsets
 
 commands = typer.Typer()
 
@@ -73,9 +76,10 @@ def extract(
             help="Also store the landmarks' support points (needed by --refine icp).",
         ),
     ] = False,
+    scale: ScaleOption = "1",
 ) -> None:
     """Extract pole (line) and plane landmarks from scans into compact .npz landmark files."""
-    from graffmatch.cli.inputs import find_labels, list_scans, read_scan
+    from graffmatch.cli.inputs import find_labels, list_scans, read_cloud
 
     if not scan.exists():
         raise MalformedFileError(f"{scan}: scan not found")
@@ -98,9 +102,10 @@ def extract(
         for path in scans:
             progress.update(task, description=f"extracting {path.name}")
             label_path = find_labels(path, labels, STATE.settings.input.labels)
-            pts, lab = read_scan(path, label_path)
+            cloud = read_cloud(path, label_path, scale)
+            pts = cloud.points
             t0 = time.perf_counter()
-            ls = ex.extract(pts, lab)
+            ls = ex.extract(pts, cloud.labels)
             dt = time.perf_counter() - t0
             target = output if single_file else out_dir / f"{path.stem}.npz"
             ls.save(target, include_points=with_points)
@@ -111,6 +116,8 @@ def extract(
                     "labels": None if label_path is None else str(label_path),
                     "landmarks": str(target),
                     "n_points": len(pts),
+                    # landmarks are relative to this (zero unless the file held far coordinates)
+                    "origin": cloud.origin,
                     "poles": c["lines"],
                     "planes": c["planes"],
                     "seconds": dt,
@@ -209,6 +216,7 @@ def register(
     target_labels: Annotated[
         Path | None, typer.Option(help="SemanticKITTI labels of the target scan.")
     ] = None,
+    scale: ScaleOption = "1",
 ) -> None:
     """Register SOURCE to TARGET: print T_target_source, inliers, score, κ and validity."""
     from graffmatch.cli.inputs import gt_from_dataset, path_record, read_transform, write_pose_file
@@ -230,9 +238,9 @@ def register(
     with make_progress() as progress:
         task = progress.add_task("registering", total=steps)
         with stage(progress, task, f"reading {source.name}"):
-            src = load_input(source, source_labels, label_mode, extractor)
+            src = load_input(source, source_labels, label_mode, extractor, scale)
         with stage(progress, task, f"reading {target.name}"):
-            tgt = load_input(target, target_labels, label_mode, extractor)
+            tgt = load_input(target, target_labels, label_mode, extractor, scale)
         with stage(progress, task, "matching"):
             from graffmatch.matcher import GraffMatcher
 
@@ -245,6 +253,11 @@ def register(
             with stage(progress, task, "ICP refinement"):
                 refine_info = _refine_icp(src.landmarks, tgt.landmarks, assoc, T_est, result)
                 T_est = refine_info["T_target_source"]
+    # Far (UTM) clouds were registered around their origins; give the transform of the files.
+    T_local = T_est
+    if T_est is not None:
+        T_est = restore_offsets(T_est, src.origin, tgt.origin)
+        T_matcher = restore_offsets(T_matcher, src.origin, tgt.origin)
 
     if output is None:
         folder = run_dir(STATE.runs_dir, "register")
@@ -268,12 +281,13 @@ def register(
         from graffmatch.evaluation.metrics import ground_truth_report
 
         g = settings.ground_truth
+        # judged around the origins, where the landmarks are (the same frames when they are 0)
         gt_info = ground_truth_report(
             src.landmarks,
             tgt.landmarks,
             assoc,
-            T_est,
-            T_gt,
+            T_local,
+            restore_offsets(T_gt, -src.origin, -tgt.origin),
             tau_d_deg=g.tau_d_deg,
             max_rotation_deg=g.max_rotation_deg,
             max_translation_m=g.max_translation_m,
@@ -295,6 +309,8 @@ def register(
         "counts": {"source": src.landmarks.counts(), "target": tgt.landmarks.counts()},
         "T_target_source": T_est,
         "T_target_source_matcher": T_matcher,
+        "origins": {"source": src.origin, "target": tgt.origin, "scale": str(scale)},
+        "T_target_source_local": T_local,
         "associations": assoc,
         "weights": np.asarray(result.weights, float),
         "score": float(result.score),
@@ -332,7 +348,7 @@ def register(
             view,
             src.landmarks,
             tgt.landmarks,
-            np.eye(4) if T_est is None else T_est,
+            np.eye(4) if T_local is None else T_local,
             assoc,
             source_points=src.points,
             target_points=tgt.points,
@@ -368,16 +384,23 @@ def _refine_icp(src, tgt, assoc: np.ndarray, T_init: np.ndarray, result) -> dict
     ps, pt = matched_support_points(src, tgt, used)
     if len(ps) < 3 or len(pt) < 3:
         raise InvalidInputError("--refine icp: the matched landmarks carry too few support points")
+    import open3d as o3d
+
     icp = STATE.settings.icp
-    T, fitness, rmse = refine_icp(
-        ps,
-        pt,
-        T_init,
-        max_correspondence_distance=icp.max_correspondence_distance,
-        max_iterations=icp.max_iterations,
-        point_to_plane=icp.point_to_plane,
-        normal_radius=icp.normal_radius,
-    )
+    # One thread: Open3D's parallel sums change the last bits from run to run otherwise.
+    o3d.utility.set_max_threads(1)
+    try:
+        T, fitness, rmse = refine_icp(
+            ps,
+            pt,
+            T_init,
+            max_correspondence_distance=icp.max_correspondence_distance,
+            max_iterations=icp.max_iterations,
+            point_to_plane=icp.point_to_plane,
+            normal_radius=icp.normal_radius,
+        )
+    finally:
+        o3d.utility.set_max_threads(0)
     return {
         "method": "icp",
         "T_target_source": np.asarray(T, float),
@@ -489,7 +512,7 @@ def view(
 
     Example: graffmatch view result.json -o match.html --png match_topdown.png
     """
-    from graffmatch.cli.inputs import is_landmark_file, load_result, read_scan, resolve_path_record
+    from graffmatch.cli.inputs import is_landmark_file, load_result, read_cloud, resolve_path_record
     from graffmatch.geometry.landmarks import LandmarkSet
     from graffmatch.viz.match_view import result_view_info, write_match_view
 
@@ -512,13 +535,16 @@ def view(
                 and p.exists()
                 and not is_landmark_file(p)
             ):
-                points[name] = read_scan(p)[0]
+                scale = data.get("origins", {}).get("scale", "1")
+                points[name] = read_cloud(p, scale=parse_scale(scale)).points
             elif rec.get("kind") == "scan":
                 err.print(f"[yellow]warning[/yellow]: scan {p} not found; drawing landmarks only")
     gt = data.get("ground_truth")
     mask = None if not gt else np.asarray(gt["inlier_mask"], bool)
     out_path = output or result.with_suffix(".html")
-    T = np.eye(4) if data["T_target_source"] is None else np.asarray(data["T_target_source"])
+    # the landmark files and the re-read points are around the origins (see register)
+    T_saved = data.get("T_target_source_local", data["T_target_source"])
+    T = np.eye(4) if T_saved is None else np.asarray(T_saved)
     assoc = np.asarray(data["associations"], np.int64).reshape(-1, 2)
     written = write_match_view(
         out_path,

@@ -196,7 +196,6 @@ def test_register_landmark_files_with_ground_truth(synth, tmp_path):
 
 
 def test_register_kitti_pose_and_icp_refinement(synth, tmp_path):
-    pytest.importorskip("graffmatch.registration.icp")
     out = tmp_path / "icp.json"
     run(
         "register",
@@ -226,7 +225,6 @@ def test_register_kitti_pose_and_icp_refinement(synth, tmp_path):
 
 
 def test_icp_without_support_points_is_a_clear_error(synth, tmp_path):
-    pytest.importorskip("graffmatch.registration.icp")
     bare = LandmarkSet.load(synth["source"]).without_points().save(tmp_path / "bare.npz")
     res = run(
         "register", bare, synth["target"], "--refine", "icp", "-o", tmp_path / "r.json", code=1
@@ -245,20 +243,21 @@ def test_extract_and_register_real_scans(kitti, tmp_path):
 
     L = kitti["L"]
     T_gt = np.linalg.inv(L[5]) @ L[0]
-    res = run("--runs-dir", tmp_path / "runs", "register", s0, s5, "--gt", "auto", code=None)
-    assert res.exit_code in (0, 3), res.output
+    # scans 0 and 5 overlap (4.3 m apart): the pair must register, valid (exit 0) and right
+    # (measured: 0.92 deg, 0.99 m from landmarks alone, inside the paper's 5 deg / 1 m)
+    res = run("--runs-dir", tmp_path / "runs", "register", s0, s5, "--gt", "auto", code=0)
     (folder,) = list((tmp_path / "runs").glob("*_register"))
     data = json.loads((folder / "result.json").read_text())
     assert (folder / "config.yaml").is_file()
-    assert data["valid"] == (res.exit_code == 0)
+    assert data["valid"] and data["ground_truth"]["success"], res.output
+    assert data["ground_truth"]["rotation_error_deg"] < 2.0
     # landmarks of the scans were saved (with points) next to the result, and are the same
     saved = LandmarkSet.load(folder / "result_source_landmarks.npz")
     assert saved.points is not None and saved.approx_equal(ls0)
     np.testing.assert_allclose(data["ground_truth"]["T_target_source"], T_gt, atol=1e-9)
-    if data["T_target_source"] is not None:
-        rot, trans = transform_errors(np.asarray(data["T_target_source"]), T_gt)
-        assert data["ground_truth"]["rotation_error_deg"] == pytest.approx(rot, abs=1e-9)
-        assert data["ground_truth"]["translation_error_m"] == pytest.approx(trans, abs=1e-9)
+    rot, trans = transform_errors(np.asarray(data["T_target_source"]), T_gt)
+    assert data["ground_truth"]["rotation_error_deg"] == pytest.approx(rot, abs=1e-9)
+    assert data["ground_truth"]["translation_error_m"] == pytest.approx(trans, abs=1e-9)
     # the result folder can move: view finds its files through relative paths
     moved = tmp_path / "moved"
     shutil.copytree(folder, moved)
@@ -387,9 +386,9 @@ def test_calibrate_demo_and_files(tmp_path):
 
 
 def test_demo_exit_code_follows_its_verdict():
-    res = run("demo", "--mode", "landmarks", code=None)
-    assert "rotation error" in res.stdout
-    assert res.exit_code == (0 if "PASS" in res.stdout else 3)
+    # seed 0 of the landmark demo meets its bounds: PASS and exit 0, nothing else
+    res = run("demo", "--mode", "landmarks", "--seed", "0", code=0)
+    assert "rotation error" in res.stdout and "PASS" in res.stdout
 
 
 @pytest.mark.parametrize(

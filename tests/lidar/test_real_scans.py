@@ -7,9 +7,12 @@ import warnings
 import numpy as np
 import pytest
 
+from graffmatch.geometry import distance
 from graffmatch.geometry.landmarks import LandmarkType
 from graffmatch.geometry.transforms import invert, make_transform, rot_z
 from graffmatch.lidar import LandmarkExtractor, read_points
+from graffmatch.matcher import GraffMatcher
+from graffmatch.registration.closed_form import register_landmarks
 
 
 def _lidar_poses(folder) -> np.ndarray:
@@ -62,7 +65,7 @@ def test_landmark_file_is_compact(kitti, tmp_path) -> None:
 @pytest.mark.parametrize("other,min_rep", [(3, 0.7), (5, 0.65)])
 def test_repeatability_after_gt_alignment(kitti, other: int, min_rep: float) -> None:
     """Landmarks of frame 0 with a counterpart in frame `other` within 6 deg (rho = 40 m)."""
-    dist = pytest.importorskip("graffmatch.geometry.distance")
+    dist = distance
     folder, lss = kitti
     P = _lidar_poses(folder)
     b_in_0 = lss[other].transform(invert(P[0]) @ P[other])
@@ -89,14 +92,13 @@ def _gt_associations(src_in_tgt, tgt, dist) -> np.ndarray:
 def test_gt_associations_register_frame5_to_frame0(kitti) -> None:
     """The landmarks themselves support registration: with the ground-truth associations the
     closed-form line/plane registration recovers 0 <- 5 (4.3 m) within 2 deg and 1 m."""
-    dist = pytest.importorskip("graffmatch.geometry.distance")
-    closed_form = pytest.importorskip("graffmatch.registration.closed_form")
+    dist = distance
     folder, lss = kitti
     P = _lidar_poses(folder)
     T_true = invert(P[0]) @ P[5]
     gt = _gt_associations(lss[5].transform(T_true), lss[0], dist)
     assert len(gt) >= 8
-    est = closed_form.register_landmarks(lss[5], lss[0], gt)
+    est = register_landmarks(lss[5], lss[0], gt)
     from graffmatch.geometry.transforms import transform_errors
 
     rot, trans = transform_errors(est.T_target_source, T_true)
@@ -106,13 +108,12 @@ def test_gt_associations_register_frame5_to_frame0(kitti) -> None:
 @pytest.mark.parametrize("other", [3, 5])
 def test_end_to_end_match_with_extra_motion(kitti, other: int) -> None:
     """Extract, then GraffMatcher on 0 <- other after 180 deg yaw + 10 m: within 3 deg, 1.5 m."""
-    matcher = pytest.importorskip("graffmatch.matcher")
     from graffmatch.geometry.transforms import transform_errors
 
     folder, lss = kitti
     P = _lidar_poses(folder)
     X = make_transform(rot_z(np.pi), np.array([10.0, 0.0, 0.0]))
-    res = matcher.GraffMatcher().match(lss[other].transform(X), lss[0])
+    res = GraffMatcher().match(lss[other].transform(X), lss[0])
     assert res.valid and res.T_target_source is not None
     rot, trans = transform_errors(res.T_target_source, invert(P[0]) @ P[other] @ invert(X))
     assert rot < 3.0 and trans < 1.5
