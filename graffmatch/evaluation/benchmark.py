@@ -12,15 +12,17 @@ Rerunning the same command resumes: built suites and finished records are reused
 
 from __future__ import annotations
 
+import json
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation.executors import make_executor
+from graffmatch.evaluation.loop_closure_dataset import PAIRS_FILE
 from graffmatch.evaluation.report import make_report
-from graffmatch.evaluation.runner import StudyConfig, atomic_write_json, run_study
+from graffmatch.evaluation.runner import StudyConfig, atomic_write_json, git_commit, run_study
 
 #: Real data suite of the default benchmark (the simulated ones are added by name prefix).
 REAL_DEFAULT_SUITES = ("balm_courtyard",)
@@ -31,13 +33,97 @@ FULL_MAX_PAIRS_PER_CASE = 40
 
 
 def default_suites() -> list[str]:
-    """The simulated suites (``sim-*``) and ``balm_courtyard``."""
-    from graffmatch.evaluation.suites import available_suites
+    """The simulated suites (``sim-*``), ``balm_courtyard``, and the cross-dataset negatives
+    when a real dataset is there to pair with the simulated one."""
+    from graffmatch.evaluation.suites import available_suites, cross_sources_available
 
     names = available_suites()
-    return [n for n in names if n.startswith("sim")] + [
-        n for n in REAL_DEFAULT_SUITES if n in names
-    ]
+    out = [n for n in names if n.startswith("sim")] + [n for n in REAL_DEFAULT_SUITES if n in names]
+    if "cross-dataset" in names and cross_sources_available():
+        out.append("cross-dataset")
+    return out
+
+
+def benchmark_request(
+    suites: Sequence[str] | None,
+    quick: bool,
+    methods: Sequence[str] | None,
+    data_dir: Path,
+    config: StudyConfig | None,
+) -> dict[str, Any]:
+    """What decides a benchmark's results: a finished run with the same request is complete.
+
+    The code's commit is part of it, so that new code rebuilds the report (the study itself
+    still reuses every record whose pair and settings are unchanged).
+    """
+    return {
+        "suites": list(suites) if suites else None,  # None: the default suites
+        "quick": bool(quick),
+        "methods": None if methods is None else list(methods),
+        "data_dir": str(Path(data_dir).resolve()),
+        "study": None if config is None else config.model_dump(mode="json"),
+        "graffmatch_commit": git_commit(),
+    }
+
+
+def benchmark_complete(out_dir: str | Path, request: Mapping[str, Any]) -> bool:
+    """True when ``out_dir`` holds a finished run of ``request`` on unchanged suites.
+
+    Reads two small JSON files and stats one file per suite: no dataset is loaded or built, so
+    re-running a finished benchmark returns at once.
+    """
+    out = Path(out_dir)
+    try:
+        log = json.loads((out / "benchmark.json").read_text())
+        runs = (out / "results" / "runs.jsonl").read_text().splitlines()
+        last_run = json.loads(runs[-1]) if runs else {}
+    except (OSError, json.JSONDecodeError):
+        return False
+    if not log.get("ended_utc") or log.get("request") != dict(request):
+        return False
+    if not last_run.get("complete") or not (out / "report" / "summary.md").is_file():
+        return False
+    for entry in log.get("build", {}).values():
+        folder = Path(entry.get("folder", ""))
+        if entry.get("pairs_mtime_ns") != _mtime_ns(folder / PAIRS_FILE):
+            return False  # a suite was rebuilt since
+    return True
+
+
+def is_benchmark_complete(
+    out_dir: str | Path,
+    suites: Sequence[str] | None = None,
+    quick: bool = False,
+    methods: Sequence[str] | None = None,
+    data_dir: str | Path | None = None,
+    config: StudyConfig | None = None,
+) -> bool:
+    """Would :func:`run_benchmark` with these arguments find nothing to do? (Fast: it does not
+    even import the suites, whose datasets pull in the LiDAR front end.)"""
+    out = Path(out_dir)
+    return benchmark_complete(out, _resolve(suites, out, quick, methods, data_dir, config)[2])
+
+
+def _resolve(
+    suites: Sequence[str] | None,
+    out: Path,
+    quick: bool,
+    methods: Sequence[str] | None,
+    data_dir: str | Path | None,
+    config: StudyConfig | None,
+) -> tuple[Path, StudyConfig | None, dict[str, Any]]:
+    """The data folder, the study config and the request of a benchmark's arguments."""
+    data = Path(data_dir) if data_dir is not None else out / "data"
+    if config is None and not quick:
+        config = StudyConfig(max_pairs_per_case=FULL_MAX_PAIRS_PER_CASE)
+    return data, config, benchmark_request(suites, quick, methods, data, config)
+
+
+def _mtime_ns(path: Path) -> int | None:
+    try:
+        return path.stat().st_mtime_ns
+    except OSError:
+        return None
 
 
 def run_benchmark(
@@ -54,6 +140,8 @@ def run_benchmark(
     progress: bool = True,
 ) -> Path:
     """Build ``suites``, run every method on every pair, write the report; returns ``out_dir``.
+
+    A finished run of the same request (:func:`benchmark_complete`) returns at once.
 
     Args:
         suites: suite names (see ``graffmatch.evaluation.suites.available_suites()``);
@@ -73,15 +161,18 @@ def run_benchmark(
             ``FULL_MAX_PAIRS_PER_CASE`` pairs per case, or the quick subset).
         progress: rich progress bars.
     """
+    out = Path(out_dir)
+    data, config, request = _resolve(suites, out, quick, methods, data_dir, config)
+    if benchmark_complete(out, request):
+        return out
     from graffmatch.evaluation.suites import build_suite
 
     names = list(suites or default_suites())
     if not names:
         raise InvalidInputError("no suites to run (none given and none registered)")
-    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    data = Path(data_dir) if data_dir is not None else out / "data"
     log: dict[str, Any] = {
+        "request": request,
         "suites": names,
         "quick": quick,
         "executor": executor,
@@ -91,8 +182,6 @@ def run_benchmark(
         "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "build": {},
     }
-    if config is None and not quick:
-        config = StudyConfig(max_pairs_per_case=FULL_MAX_PAIRS_PER_CASE)
     # Fail on a bad executor before spending minutes on building data.
     ex = make_executor(executor, workers=workers, address=address)
     try:
@@ -104,11 +193,13 @@ def run_benchmark(
             folder = data / (f"{name}-quick" if quick else name)
             log["build"][name] = {
                 "folder": str(folder),
+                "pairs_mtime_ns": _mtime_ns(folder / PAIRS_FILE),
                 "pairs": summary.get("n_valid"),
                 "cases": {k: v.get("pairs") for k, v in summary.get("cases", {}).items()},
                 "seconds": time.perf_counter() - t,
             }
-            if summary.get("n_valid", 0):
+            log["build"][name]["negatives"] = summary.get("n_negatives", 0)
+            if summary.get("n_valid", 0) or summary.get("n_negatives", 0):
                 built[name] = folder
         log["build_s"] = time.perf_counter() - t0
         if not built:

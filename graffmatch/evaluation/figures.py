@@ -1,4 +1,4 @@
-"""The evaluation's figures: LMR curves, error heatmaps, runtimes, rho, dataset details.
+"""The evaluation's figures: LMR curves, error heatmaps, runtimes, rho, validity, dataset.
 
 Matplotlib is imported lazily (Agg backend) so that the tables never need it.
 """
@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from graffmatch.evaluation import metrics as M
+from graffmatch.evaluation import validity as V
 from graffmatch.evaluation.records import GT_METHOD
 from graffmatch.evaluation.tables import group_by, num
 
@@ -221,6 +222,61 @@ def fig_rho(rho_rows: Sequence[Mapping[str, Any]], stats: Mapping[str, Any], pat
     if rho_rows:
         a2.legend(fontsize=8)
     fig.subplots_adjust(left=0.07, right=0.99, bottom=0.13, top=0.92, wspace=0.2)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ---- validity ---------------------------------------------------------------------------------
+def fig_precision_recall(
+    records: Sequence[Mapping[str, Any]], methods: Sequence[str], path: Path, title: str
+) -> None:
+    """Precision-recall of each method's own validity score (positives and negatives)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 4.8))
+    groups = group_by(records, "method")
+    for m in methods:
+        g = groups.get((m,))
+        if not g:
+            continue
+        stats = V.validity_stats(g)
+        curve = V.pr_curve(
+            [V.score_of(r) for r in g], [V.is_correct(r) for r in g], stats["n_positives"]
+        )
+        if len(curve["recall"]):
+            ax.step(
+                np.r_[0.0, curve["recall"]],
+                np.r_[1.0, curve["precision"]],
+                where="post",
+                label=f"{m} ({stats['signal']}; R@P100 {stats['recall_at_full_precision']:.2f})",
+            )
+    ax.set(xlabel="recall (correct / positives)", ylabel="precision", ylim=(-0.02, 1.02))
+    ax.set_xlim(-0.02, 1.02)
+    ax.set_title(f"{title}: precision-recall over each method's validity score", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=6, loc="lower left")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def fig_reliability(records: Sequence[Mapping[str, Any]], path: Path, title: str) -> None:
+    """Reliability diagram of a confidence meant as a probability: fraction correct per bin."""
+    plt = _plt()
+    rel = V.reliability([V.score_of(r) for r in records], [V.is_correct(r) for r in records])
+    fig, (a1, a2) = plt.subplots(
+        2, 1, figsize=(5, 5.5), sharex=True, gridspec_kw={"height_ratios": [3, 1]}
+    )
+    centres = 0.5 * (rel["bin_edges"][1:] + rel["bin_edges"][:-1])
+    filled = rel["counts"] > 0
+    a1.plot([0, 1], [0, 1], color="gray", lw=0.8, ls="--", label="calibrated")
+    a1.plot(centres[filled], rel["fraction_correct"][filled], "o-", label="fraction correct")
+    a1.set(ylabel="fraction correct", ylim=(-0.02, 1.02))
+    a1.set_title(f"{title} (ECE {rel['ece']:.3f}, {len(records)} pairs)", fontsize=9)
+    a1.legend(fontsize=8)
+    a1.grid(alpha=0.3)
+    a2.bar(centres, rel["counts"], width=0.09)
+    a2.set(xlabel="confidence", ylabel="pairs")
+    fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

@@ -17,7 +17,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graffmatch.errors import InvalidInputError, MalformedFileError
-from graffmatch.evaluation.places import LoopClosureConfig
 from graffmatch.geometry.landmarks import LandmarkSet
 
 FORMAT_NAME = "graffmatch-loop-closures"
@@ -68,6 +67,8 @@ class LoopClosurePair:
     source_landmarks_path: Path
     target_landmarks_path: Path
     info: dict[str, Any] = field(default_factory=dict)
+    #: A pair without overlap (case 0, no true matches): a valid result on it is wrong.
+    negative: bool = False
 
     @property
     def source(self) -> LandmarkSet:
@@ -100,6 +101,9 @@ class LoopClosureDataset(Sequence):
     def __init__(self, root: Path, doc: dict[str, Any]) -> None:
         self.root = Path(root)
         self.doc = doc
+        # the rules' module imports the LiDAR front end's config (Open3D): only when reading
+        from graffmatch.evaluation.places import LoopClosureConfig
+
         self.config = LoopClosureConfig.model_validate(doc["config"])
         self.summary: dict[str, Any] = doc.get("summary", {})
         self.name: str = doc.get("dataset", {}).get("name", self.root.name)
@@ -107,6 +111,11 @@ class LoopClosureDataset(Sequence):
         self.scan_format: str = doc.get("dataset", {}).get("scan_format", "kitti-bin")
         self.places: dict[int, dict[str, Any]] = {int(p["scan"]): p for p in doc["places"]}
         self.pairs = [self._make_pair(k, p) for k, p in enumerate(doc["pairs"])]
+        #: Pairs without overlap (``negative_min_distance`` apart); not part of iteration, which
+        #: yields the loop closures; :meth:`with_negatives` gives both.
+        self.negatives = [
+            self._make_pair(len(self.pairs) + k, p) for k, p in enumerate(doc.get("negatives", []))
+        ]
 
     @classmethod
     def load(cls, root: str | Path) -> LoopClosureDataset:
@@ -171,6 +180,7 @@ class LoopClosureDataset(Sequence):
                     )
                     if key in p
                 },
+                negative=bool(p.get("negative", False)),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise MalformedFileError(
@@ -187,6 +197,10 @@ class LoopClosureDataset(Sequence):
     def __iter__(self) -> Iterator[LoopClosurePair]:
         return iter(self.pairs)
 
+    def with_negatives(self) -> list[LoopClosurePair]:
+        """The loop closures, then the negative pairs (what a study evaluates)."""
+        return [*self.pairs, *self.negatives]
+
     def of_case(self, case: int) -> list[LoopClosurePair]:
         return [p for p in self.pairs if p.case == case]
 
@@ -197,5 +211,6 @@ class LoopClosureDataset(Sequence):
         c = self.case_counts()
         return (
             f"LoopClosureDataset({self.name!r}, pairs={len(self)}, cases={c}, "
+            f"negatives={len(self.negatives)}, "
             f"places={len(self.places)})"
         )

@@ -50,6 +50,7 @@ from graffmatch.evaluation.places import (
     LoopClosureConfig,
     Validity,
     check_validity,
+    find_negatives,
     find_revisits,
     ground_truth_matches,
     iir_case,
@@ -58,6 +59,7 @@ from graffmatch.evaluation.places import (
     possible_matches,
     select_places,
 )
+from graffmatch.evaluation.progress import progress_bar
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.geometry.transforms import invert, rotation_error_deg
 from graffmatch.lidar.cache import LandmarkCache
@@ -78,6 +80,7 @@ __all__ = [
     "check_validity",
     "evaluate_revisit",
     "extract_place_landmarks",
+    "find_negatives",
     "find_revisits",
     "ground_truth_matches",
     "iir_case",
@@ -86,6 +89,7 @@ __all__ = [
     "path_lengths",
     "possible_matches",
     "select_places",
+    "summary_text",
 ]
 
 Array = NDArray[np.float64]
@@ -153,7 +157,7 @@ def extract_place_landmarks(
     stats: dict[str, Any] = {"extracted": len(todo), "cached": len(keys) - len(todo)}
     seconds = 0.0
     if todo:
-        with _progress(progress) as bar:
+        with progress_bar(progress) as bar:
             task = bar.add_task(
                 f"landmarks ({getattr(dataset, 'name', 'dataset')})", total=len(todo)
             )
@@ -177,34 +181,6 @@ def extract_place_landmarks(
                 index_file.write_text(json.dumps(cache, indent=0, sort_keys=True))
     stats["extract_seconds"] = seconds
     return stats
-
-
-class _NullProgress:
-    def __enter__(self) -> _NullProgress:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        return None
-
-    def add_task(self, *a: Any, **k: Any) -> int:
-        return 0
-
-    def advance(self, *a: Any, **k: Any) -> None:
-        return None
-
-
-def _progress(enabled: bool) -> Any:
-    if not enabled:
-        return _NullProgress()
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
-
-    return Progress(
-        "[progress.description]{task.description}",
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeRemainingColumn(),
-        transient=True,
-    )
 
 
 # ---- pairs ----------------------------------------------------------------------------------
@@ -265,6 +241,40 @@ def evaluate_revisit(
     return matches, n_possible, iir, case, validity
 
 
+def _negative_pairs(
+    poses: Array,
+    places: NDArray[np.int64],
+    sets: dict[int, LandmarkSet],
+    config: LoopClosureConfig,
+    n_positive: int,
+) -> list[dict[str, Any]]:
+    """Pairs of places without overlap, in the pairs.json format (case 0, no true matches)."""
+    if config.negative_min_distance is None:
+        return []
+    n = n_positive if config.max_negatives is None else config.max_negatives
+    out = []
+    for src, tgt in find_negatives(poses, places, config.negative_min_distance, n):
+        src, tgt = int(src), int(tgt)
+        T = invert(poses[tgt]) @ poses[src]
+        out.append(
+            {
+                "source_scan": src,
+                "target_scan": tgt,
+                "T_target_source": np.round(T, 10).tolist(),
+                "true_matches": [],
+                "n_possible": possible_matches(sets[src], sets[tgt]),
+                "iir": 0.0,
+                "case": 0,
+                "distance": float(np.linalg.norm(T[:3, 3])),
+                "rotation_deg": float(rotation_error_deg(T[:3, :3], np.eye(3))),
+                "n_true_lines": 0,
+                "n_true_planes": 0,
+                "negative": True,
+            }
+        )
+    return out
+
+
 def build_loop_closure_dataset(
     dataset: Dataset,
     out_dir: str | Path,
@@ -309,37 +319,44 @@ def build_loop_closure_dataset(
     s_all = path_lengths(poses)
     records: list[PairRecord] = []
     reasons: dict[str, int] = {}
-    for src, tgt in revisits:
-        src, tgt = int(src), int(tgt)
-        T = invert(poses[tgt]) @ poses[src]
-        matches, n_possible, iir, case, v = evaluate_revisit(sets[src], sets[tgt], T, config)
-        reasons[v.reason] = reasons.get(v.reason, 0) + 1
-        if not v.valid:
-            continue
-        mtypes = sets[src].types[matches[:, 0]]
-        records.append(
-            PairRecord(
-                source_scan=src,
-                target_scan=tgt,
-                T_target_source=T,
-                true_matches=matches,
-                n_possible=n_possible,
-                iir=float(iir),
-                case=case,
-                distance=float(np.linalg.norm(T[:3, 3])),
-                rotation_deg=float(rotation_error_deg(T[:3, :3], np.eye(3))),
-                path_length=float(abs(s_all[src] - s_all[tgt])),
-                n_true_lines=int(np.sum(mtypes == LandmarkType.LINE)),
-                n_true_planes=int(np.sum(mtypes == LandmarkType.PLANE)),
-                n_true_points=int(np.sum(mtypes == LandmarkType.POINT)),
-                kappa=v.kappa,
-                gt_rotation_error_deg=v.rotation_error_deg,
-                gt_translation_error=v.translation_error,
-            )
+    with progress_bar(progress and len(revisits) > 0) as bar:
+        task = bar.add_task(
+            f"revisits ({getattr(dataset, 'name', 'dataset')})", total=len(revisits)
         )
+        for src, tgt in revisits:
+            bar.advance(task)
+            src, tgt = int(src), int(tgt)
+            T = invert(poses[tgt]) @ poses[src]
+            matches, n_possible, iir, case, v = evaluate_revisit(sets[src], sets[tgt], T, config)
+            reasons[v.reason] = reasons.get(v.reason, 0) + 1
+            if not v.valid:
+                continue
+            mtypes = sets[src].types[matches[:, 0]]
+            records.append(
+                PairRecord(
+                    source_scan=src,
+                    target_scan=tgt,
+                    T_target_source=T,
+                    true_matches=matches,
+                    n_possible=n_possible,
+                    iir=float(iir),
+                    case=case,
+                    distance=float(np.linalg.norm(T[:3, 3])),
+                    rotation_deg=float(rotation_error_deg(T[:3, :3], np.eye(3))),
+                    path_length=float(abs(s_all[src] - s_all[tgt])),
+                    n_true_lines=int(np.sum(mtypes == LandmarkType.LINE)),
+                    n_true_planes=int(np.sum(mtypes == LandmarkType.PLANE)),
+                    n_true_points=int(np.sum(mtypes == LandmarkType.POINT)),
+                    kappa=v.kappa,
+                    gt_rotation_error_deg=v.rotation_error_deg,
+                    gt_translation_error=v.translation_error,
+                )
+            )
     t_match = time.perf_counter() - t0
+    negatives = _negative_pairs(poses, places, sets, config, len(records))
 
     place_counts = {i: sets[i].counts() for i in sets}
+    summary_negatives = len(negatives)
     summary = _summary(
         dataset,
         places,
@@ -377,8 +394,10 @@ def build_loop_closure_dataset(
             for i in places
         ],
         "pairs": [r.to_json() for r in records],
+        "negatives": negatives,
         "summary": summary,
     }
+    summary["n_negatives"] = summary_negatives
     _atomic_write(out_dir / PAIRS_FILE, json.dumps(doc, indent=1))
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     if figure:
@@ -443,6 +462,30 @@ def _summary(
         "times": times,
         "cache": {k: cache[k] for k in ("extracted", "cached")},
     }
+
+
+def summary_text(summary: dict[str, Any]) -> str:
+    """A build summary as a few readable lines (what ``graffmatch build-dataset`` prints)."""
+    cases = summary.get("cases", {})
+    per_case = ", ".join(f"case {c}: {cases[c]['pairs']}" for c in sorted(cases))
+    lines = [
+        f"{summary.get('n_scans', '?')} scans, {summary.get('n_places', '?')} places, "
+        f"{summary.get('n_revisits', '?')} revisits -> {summary.get('n_valid', 0)} loop "
+        f"closures ({per_case or 'none'}), {summary.get('n_negatives', 0)} negative pairs "
+        "(places without overlap)",
+    ]
+    rejected = summary.get("rejected") or {}
+    if rejected:
+        lines.append("rejected: " + ", ".join(f"{k} {v}" for k, v in rejected.items()))
+    lm = summary.get("landmarks_per_place", {})
+    if lm:
+        lines.append(
+            f"landmarks per place: {lm['lines']['mean']:.1f} poles, "
+            f"{lm['planes']['mean']:.1f} planes (mean)"
+        )
+    if "total_s" in summary:
+        lines.append(f"built in {summary['total_s']:.1f} s")
+    return "\n".join(lines)
 
 
 def __getattr__(name: str) -> Any:

@@ -327,6 +327,15 @@ class GraffMatchMethod:
                 "n_putative": int(getattr(res, "n_putative", -1)),
                 "n_edges": int(getattr(res, "n_edges", -1)),
                 "message": str(getattr(res, "message", "")),
+                # the native validity signal: the matcher's calibrated confidence when it has
+                # one (issue 11), else its flag
+                "validity_score": float(getattr(res, "confidence", float(res.valid))),
+                "validity_signal": "confidence" if hasattr(res, "confidence") else "valid",
+                **{
+                    k: float(getattr(res, k))
+                    for k in ("overlap", "margin")
+                    if isinstance(getattr(res, k, None), int | float)
+                },
             },
         )
 

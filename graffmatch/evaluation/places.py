@@ -73,6 +73,18 @@ class LoopClosureConfig(BaseModel):
     max_pairs: int | None = Field(
         None, ge=1, description="Keep at most this many revisits, evenly spaced (None: all)."
     )
+    negative_min_distance: float | None = Field(
+        60.0,
+        gt=0,
+        description="Negative pairs: places at least this far apart [m], which share nothing; "
+        "None: no negatives. Every method's validity flag is scored on them.",
+    )
+    max_negatives: int | None = Field(
+        None,
+        ge=0,
+        description="At most this many negative pairs, evenly spaced (None: as many as there "
+        "are loop closures).",
+    )
     max_landmarks_per_type: int | None = Field(
         None,
         ge=1,
@@ -156,6 +168,22 @@ def find_revisits(
     out = np.stack([places[b[keep]], places[a[keep]]], axis=1)
     order = np.lexsort((out[:, 1], out[:, 0]))
     return out[order]
+
+
+def find_negatives(
+    poses: Array, places: NDArray[np.int64], min_distance: float, max_count: int
+) -> NDArray[np.int64]:
+    """(m, 2) scan indices (later place, earlier place) of places at least ``min_distance``
+    apart: pairs without overlap. At most ``max_count``, evenly spaced over all such pairs."""
+    places = np.asarray(places, dtype=np.int64)
+    if len(places) < 2 or max_count <= 0:
+        return np.zeros((0, 2), np.int64)
+    X = np.asarray(poses, dtype=float)[places, :3, 3]
+    a, b = np.triu_indices(len(places), 1)
+    far = np.flatnonzero(np.linalg.norm(X[b] - X[a], axis=1) >= min_distance)
+    if len(far) > max_count:
+        far = far[np.unique(np.linspace(0, len(far) - 1, max_count).round().astype(np.int64))]
+    return np.stack([places[b[far]], places[a[far]]], axis=1).reshape(-1, 2)
 
 
 # ---- ground-truth matches, IIR, validity ---------------------------------------------------

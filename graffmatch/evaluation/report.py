@@ -8,8 +8,10 @@
     metrics.{csv,json}         every (suite, case, method) summary row
     rho.{md,csv,json}          AUC and recall of GraffMatch over rho
     expectations.{md,json}     the paper's orderings, computed from our numbers
+    validity.{md,csv,json}     per suite and method: precision of valid, FPR on negatives, R@P100
     config.json                copy of the study config the results came from
-    figures/*.png              LMR curves, error heatmaps, runtimes, rho sensitivity
+    figures/*.png              LMR curves, error heatmaps, runtimes, rho sensitivity,
+                               precision-recall of the validity scores, GraffMatch reliability
 
 Everything is computed from the per-pair records alone (no landmarks or scans needed), with the
 metric definitions of :mod:`graffmatch.evaluation.metrics`.
@@ -23,14 +25,22 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation import metrics as M
 from graffmatch.evaluation.expectations import check_expectations, expectations_md
-from graffmatch.evaluation.figures import fig_error_heatmaps, fig_lmr, fig_rho, fig_runtimes
-from graffmatch.evaluation.records import GT_METHOD, load_config, load_records
+from graffmatch.evaluation.figures import (
+    fig_error_heatmaps,
+    fig_lmr,
+    fig_precision_recall,
+    fig_reliability,
+    fig_rho,
+    fig_runtimes,
+)
+from graffmatch.evaluation.records import GT_METHOD, RHO_METHOD, load_config, load_records
 from graffmatch.evaluation.tables import (
     ALL_CASES,
     BASELINES,
@@ -58,6 +68,7 @@ from graffmatch.evaluation.tables import (
     table_long_md,
     table_md,
 )
+from graffmatch.evaluation.validity import validity_table
 
 __all__ = [
     "ALL_CASES",
@@ -79,6 +90,26 @@ __all__ = [
     "table1",
     "table2",
 ]
+
+
+def _rel(path: Path, root: Path) -> str:
+    return path.relative_to(root).as_posix()
+
+
+def _validity_md(rows: Sequence[Mapping[str, Any]]) -> str:
+    head = (
+        "| suite | method | signal | positives | negatives | valid | precision [%] | "
+        "FPR on negatives [%] | R@P100 [%] |\n|---|---|---|---|---|---|---|---|---|"
+    )
+    body = [
+        f"| {r['suite']} | {r['method']} | {r['signal']} | {r['n_positives']} | "
+        f"{r['n_negatives']} | {r['n_valid']} | {fmt(100 * num(r['precision']), '.1f')} | "
+        f"{fmt(100 * num(r['fpr_negatives']), '.1f')} | "
+        f"{fmt(100 * num(r['recall_at_full_precision']), '.0f')} |"
+        for r in rows
+        if r["method"] != GT_METHOD and not is_rho_spec(r["method"])
+    ]
+    return "\n".join([head, *body])
 
 
 def _read_json_dir(d: Path) -> dict[str, Any]:
@@ -141,6 +172,12 @@ def make_report(
     )
     (out / "rho.md").write_text(rho_md + "\n")
 
+    vt = validity_table(main)
+    dump_json(out / "validity.json", vt)
+    rows_csv(out / "validity.csv", vt)
+    validity_md = _validity_md(vt)
+    (out / "validity.md").write_text(validity_md + "\n")
+
     exps = check_expectations(rows)
     dump_json(out / "expectations.json", exps)
     exp_md = expectations_md(exps)
@@ -175,6 +212,17 @@ def make_report(
             fig_links.append(("runtime per stage", "figures/runtime_stages.png"))
         fig_rho(rr, stats, fig_dir / "rho_sensitivity.png")
         fig_links.append(("rho sensitivity and centroid distances", "figures/rho_sensitivity.png"))
+        methods_v = [m for m in all_methods if m != GT_METHOD]
+        for suite in suites:
+            recs = [r for r in main if r["suite"] == suite]
+            p = fig_dir / f"precision_recall_{suite}.png"
+            fig_precision_recall(recs, methods_v, p, suite)
+            fig_links.append((f"precision-recall of the validity scores, {suite}", _rel(p, out)))
+        ours = [r for r in main if r["method"] == RHO_METHOD]
+        if ours:
+            p = fig_dir / "reliability_graffmatch.png"
+            fig_reliability(ours, p, f"{RHO_METHOD} confidence, all suites")
+            fig_links.append(("reliability diagram of GraffMatch's confidence", _rel(p, out)))
 
     # summary
     errors = [r for r in main if r.get("status") != "ok"]
@@ -183,7 +231,10 @@ def make_report(
     for suite in suites:
         meta = pairs.get(suite, [])
         per_case = group_by(meta, "case") if meta else {}
-        cs = ", ".join(f"case {c[0]}: {len(v)}" for c, v in sorted(per_case.items(), key=str))
+        cs = ", ".join(
+            f"{'negatives' if c[0] == 0 else f'case {c[0]}'}: {len(v)}"
+            for c, v in sorted(per_case.items(), key=str)
+        )
         st = stats.get(suite, {})
         dataset_lines.append(
             f"- **{suite}**: {len(meta)} pairs ({cs}); landmark-centroid distances "
@@ -223,6 +274,12 @@ def make_report(
         table_long_md(t2, TABLE2_COLS) + "\n",
         "The paper's wide layout: [table2.md](table2.md); CSV/JSON: [table2.csv](table2.csv), "
         "[table2.json](table2.json).\n",
+        "## Validity: is `valid` right? (positives and negative pairs)\n",
+        "Precision = correct valid results / valid results; FPR = valid results on negative "
+        "pairs (places without overlap) / negatives; R@P100 = the largest recall of a threshold "
+        "on the method's own validity score that accepts no wrong result. "
+        "See `graffmatch.evaluation.validity`.\n",
+        validity_md + "\n",
         "## The paper's expectations, checked on our numbers\n",
         exp_md,
         "## ρ sensitivity (GraffMatch)\n",

@@ -32,6 +32,7 @@ from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation import metrics as M
 from graffmatch.evaluation.compare import COMPARE_METRICS, compare_runs, format_comparison
 from graffmatch.evaluation.executors import Executor, make_executor
+from graffmatch.evaluation.progress import progress_bar
 from graffmatch.evaluation.records import (
     DEFAULT_RHO_VALUES,
     GT_METHOD,
@@ -83,6 +84,7 @@ __all__ = [
     "default_methods",
     "execute_task",
     "format_comparison",
+    "git_commit",
     "load_config",
     "load_records",
     "method_kind",
@@ -128,6 +130,7 @@ def _pair_meta(pair: Any, pair_id: str) -> dict[str, Any]:
             "pair_id": pair_id,
             "fingerprint": pair_fingerprint(pair),
             "case": int(getattr(pair, "case", 0)),
+            "negative": bool(getattr(pair, "negative", False)),
             "iir": float(getattr(pair, "iir", np.nan)),
             "distance": float(getattr(pair, "distance", np.nan)),
             "n_true_matches": len(np.asarray(pair.true_matches).reshape(-1, 2)),
@@ -240,7 +243,7 @@ def centroid_distance_stats(pairs: Iterable[Any], bin_width: float = 2.0) -> dic
     }
 
 
-def _git_commit() -> str | None:
+def git_commit() -> str | None:
     try:
         r = subprocess.run(
             ["git", "rev-parse", "HEAD"],
@@ -346,7 +349,7 @@ def run_study(
         "executor": executor if isinstance(executor, str) else executor.name,
         "address": address,
         "workers": workers,
-        "graffmatch_commit": _git_commit(),
+        "graffmatch_commit": git_commit(),
         "python": platform.python_version(),
         "numpy": np.__version__,
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
@@ -435,35 +438,17 @@ def run_study(
 
 
 class _progress:
-    """A rich progress bar with ETA (or nothing), used as ``with _progress(...) as advance``."""
+    """The study's bar (or nothing), used as ``with _progress(...) as advance``."""
 
     def __init__(self, enabled: bool, total: int, done_before: int) -> None:
-        self.enabled = enabled and total > 0
+        self._p = progress_bar(
+            enabled and total > 0, "[bold]study[/] {task.description}", transient=False
+        )
         self.total = total
         self.done_before = done_before
-        self._p: Any = None
 
     def __enter__(self) -> Callable[[str], None]:
-        if not self.enabled:
-            return lambda _m: None
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
-
-        self._p = Progress(
-            TextColumn("[bold]study[/] {task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeElapsedColumn(),
-            TextColumn("ETA"),
-            TimeRemainingColumn(),
-        )
-        self._p.start()
+        self._p.__enter__()
         desc = f"({self.done_before} already done)" if self.done_before else ""
         tid = self._p.add_task(desc, total=self.total)
 
@@ -473,5 +458,4 @@ class _progress:
         return advance
 
     def __exit__(self, *exc: object) -> None:
-        if self._p is not None:
-            self._p.stop()
+        self._p.__exit__(*exc)

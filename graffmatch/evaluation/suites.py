@@ -29,7 +29,11 @@ from graffmatch.datasets.simulator import SUITES as SIM_SUITES
 from graffmatch.datasets.simulator import simulate_dataset
 from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation.loop_closures import LoopClosureConfig, build_loop_closure_dataset
+from graffmatch.evaluation.progress import progress_bar
 from graffmatch.lidar.extractor import LandmarkExtractorConfig
+
+#: ``progress(done, total)`` of a long step.
+ProgressFn = Callable[[int, int], None]
 
 
 def shared_data_root() -> Path:
@@ -45,7 +49,9 @@ class Suite:
     """A named data source and the loop-closure rules applied to it.
 
     ``make_dataset(suite_dir, quick, data_root)`` returns the Dataset (simulating it first when
-    needed). ``quick`` overrides are applied to the config for fast smoke builds.
+    needed). ``make_raw(suite_dir, quick, progress)``, when given, makes the raw data first and
+    reports ``progress(done, total)``, so that a long simulation shows a progress bar. ``quick``
+    overrides are applied to the config for fast smoke builds.
     """
 
     name: str
@@ -53,6 +59,10 @@ class Suite:
     make_dataset: Callable[[Path, bool, Path | None], Dataset]
     config: LoopClosureConfig = field(default_factory=LoopClosureConfig)
     quick_overrides: dict[str, Any] = field(default_factory=lambda: {"max_places": 40})
+    make_raw: Callable[[Path, bool, ProgressFn | None], None] | None = None
+    #: A builder of its own (``build(suite_dir, quick, data_root, progress) -> summary``) for
+    #: suites that are not revisits of one drive, such as the cross-dataset negatives.
+    build: Callable[[Path, bool, Path | None, bool], dict[str, Any]] | None = None
 
 
 SUITES: dict[str, Suite] = {}
@@ -100,6 +110,20 @@ def build_suite(
     out_dir = Path(out_root) / (f"{name}-quick" if quick else name)
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
+    if suite.build is not None:
+        root = None if data_root is None else Path(data_root)
+        summary = suite.build(out_dir, quick, root, progress)
+        summary.update(suite=name, quick=quick)
+        (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        return summary
+    if suite.make_raw is not None:
+        with progress_bar(progress, "{task.description}") as bar:
+            task = bar.add_task(f"{name}: making the scans", total=None)
+
+            def tick(done: int, total: int) -> None:
+                bar.update(task, completed=done, total=total)
+
+            suite.make_raw(out_dir, quick, tick)
     dataset = suite.make_dataset(out_dir, quick, None if data_root is None else Path(data_root))
     t_sim = time.perf_counter() - t0
     cfg = config or suite_config(name, quick)
@@ -139,29 +163,32 @@ register_suite(
 )
 
 
-def _simulated(spec_name: str, quick_scans: int) -> Callable[[Path, bool, Path | None], Dataset]:
-    """Dataset factory of a simulated suite: simulate into ``<suite_dir>/raw`` once.
+class _Simulated:
+    """A simulated suite: simulate into ``<suite_dir>/raw`` once, then read it as a KITTI folder.
 
     The raw data is reused when its ``sim_meta.json`` records the same request (world config,
     seed, sensor, scan count): the simulator is deterministic, so it would be byte-identical.
     """
 
-    def make(suite_dir: Path, quick: bool, data_root: Path | None) -> Dataset:
-        spec = SIM_SUITES[spec_name]
-        n_scans = min(quick_scans, spec.n_scans) if quick else spec.n_scans
-        raw = suite_dir / "raw"
-        simulate_dataset(
-            raw,
+    def __init__(self, spec_name: str, quick_scans: int) -> None:
+        self.spec_name = spec_name
+        self.quick_scans = quick_scans
+
+    def raw(self, suite_dir: Path, quick: bool, progress: ProgressFn | None = None) -> Path:
+        spec = SIM_SUITES[self.spec_name]
+        return simulate_dataset(
+            suite_dir / "raw",
             style=spec.style,
             seed=spec.seed,
-            n_scans=n_scans,
+            n_scans=min(self.quick_scans, spec.n_scans) if quick else spec.n_scans,
             sensor=spec.sensor,
             world_config=spec.world_config(),
             reuse=True,
+            progress=progress,
         )
-        return KittiFolder(raw, name=spec_name)
 
-    return make
+    def dataset(self, suite_dir: Path, quick: bool, data_root: Path | None) -> Dataset:
+        return KittiFolder(self.raw(suite_dir, quick), name=self.spec_name)
 
 
 #: Front end of each simulated suite. The default extractor (planes of >= 10 m^2 within 50 m)
@@ -180,10 +207,73 @@ for _spec in SIM_SUITES.values():
             name=_spec.name,
             description=f"simulated ({_spec.style}, seed {_spec.seed}, {_spec.n_scans} scans, "
             f"{_spec.sensor}): {_spec.description}; the paper's rules",
-            make_dataset=_simulated(_spec.name, quick_scans=160),
+            make_dataset=(_sim := _Simulated(_spec.name, quick_scans=160)).dataset,
+            make_raw=_sim.raw,
             config=LoopClosureConfig(
                 extractor=LandmarkExtractorConfig.model_validate(SIM_EXTRACTORS.get(_spec.name, {}))
             ),
             quick_overrides={},
         )
     )
+
+
+# ---- negatives across datasets -----------------------------------------------------------------
+#: Places per source of the cross-dataset negatives (full, quick) and pairs at most.
+CROSS_PLACES = {"kitti00_first6": (6, 3), "balm_courtyard": (12, 4), "sim-suburban": (8, 3)}
+CROSS_MAX_PAIRS = (120, 12)
+#: Scans simulated for the simulated source (full, quick): a few are enough for negatives.
+CROSS_SIM_SCANS = (16, 6)
+
+
+def cross_sources_available(data_root: Path | None = None) -> list[str]:
+    """The real sources of the cross-dataset negatives found under the shared data."""
+    root = data_root or shared_data_root()
+    return [n for n in ("kitti00_first6", "balm_courtyard") if (root / n / "velodyne").is_dir()]
+
+
+def _build_cross(suite_dir: Path, quick: bool, data_root: Path | None, progress: bool) -> dict:
+    from graffmatch.evaluation.cross_negatives import NegativeSource, build_cross_negatives
+
+    root = data_root or shared_data_root()
+    q = int(quick)
+    sources = []
+    for name in cross_sources_available(root):
+        cfg = suite_config(name, quick) if name in SUITES else LoopClosureConfig()
+        sources.append(
+            NegativeSource(name, KittiFolder(root / name, name=name), cfg, CROSS_PLACES[name][q])
+        )
+    spec = SIM_SUITES["sim-suburban"]
+    raw = simulate_dataset(
+        suite_dir / "sim-suburban",
+        style=spec.style,
+        seed=spec.seed + 1000,  # not the drive of the sim-suburban suite itself
+        n_scans=CROSS_SIM_SCANS[q],
+        sensor=spec.sensor,
+        world_config=spec.world_config(),
+        reuse=True,
+    )
+    sources.append(
+        NegativeSource(
+            "sim-suburban",
+            KittiFolder(raw, name="sim-suburban"),
+            suite_config("sim-suburban", quick),
+            CROSS_PLACES["sim-suburban"][q],
+        )
+    )
+    return build_cross_negatives(sources, suite_dir, CROSS_MAX_PAIRS[q], progress)
+
+
+def _no_dataset(suite_dir: Path, quick: bool, data_root: Path | None) -> Dataset:
+    raise InvalidInputError("cross-dataset is built by its own builder, not from one drive")
+
+
+register_suite(
+    Suite(
+        name="cross-dataset",
+        description="negative pairs only: KITTI 00 vs the courtyard vs a simulated street "
+        "(places that share nothing; scores the validity flags)",
+        make_dataset=_no_dataset,
+        build=_build_cross,
+        quick_overrides={},
+    )
+)

@@ -24,6 +24,7 @@ from graffmatch.evaluation.registry import (
     TABLE_I_METHODS,
     TABLE_II_METHODS,
 )
+from graffmatch.evaluation.validity import is_negative, validity_stats
 
 #: Column order of the paper's Table I, then our extra variants.
 TABLE_I_ORDER = (*TABLE_I_METHODS, "GraffMatch-Naive", "GraffMatch-lines", "GraffMatch-planes")
@@ -95,15 +96,46 @@ def group_by(records: Iterable[Mapping[str, Any]], *keys: str) -> dict[tuple, li
 
 
 def summarize(records: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """One row per (suite, case, method), plus case ``"all"`` per (suite, method)."""
+    """One row per (suite, case, method), plus case ``"all"`` per (suite, method).
+
+    Recall, AUC and errors are over the positive pairs (loop closures). Each row also has the
+    validity numbers of :mod:`~graffmatch.evaluation.validity`: per case over its positives,
+    and in the ``"all"`` row over the positives *and* the suite's negative pairs (precision,
+    false-positive rate on negatives, recall at 100 % precision).
+    """
+    positives = [r for r in records if not is_negative(r)]
+    negatives = group_by([r for r in records if is_negative(r)], "suite", "method")
     rows = []
     for (suite, case, method), group in sorted(
-        group_by(records, "suite", "case", "method").items(), key=lambda kv: sort_key(kv[0])
+        group_by(positives, "suite", "case", "method").items(), key=lambda kv: sort_key(kv[0])
     ):
-        rows.append({"suite": suite, "case": case, "method": method, **summary_row(group)})
-    for (suite, method), group in sorted(group_by(records, "suite", "method").items()):
-        rows.append({"suite": suite, "case": ALL_CASES, "method": method, **summary_row(group)})
+        rows.append(
+            {
+                "suite": suite,
+                "case": case,
+                "method": method,
+                **summary_row(group),
+                **_validity(group),
+            }
+        )
+    for (suite, method), group in sorted(group_by(positives, "suite", "method").items()):
+        both = [*group, *negatives.get((suite, method), [])]
+        rows.append(
+            {
+                "suite": suite,
+                "case": ALL_CASES,
+                "method": method,
+                **summary_row(group),
+                **_validity(both),
+            }
+        )
     return rows
+
+
+def _validity(records: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    v = validity_stats(records)
+    keys = ("precision", "fpr_negatives", "n_negatives", "recall_at_full_precision", "signal")
+    return {k: v[k] for k in keys}
 
 
 def sort_key(k: tuple) -> tuple:
@@ -157,6 +189,7 @@ def table1(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                     continue
                 entry["methods"][m] = {
                     "recall_pct": 100.0 * r["recall"],
+                    "precision_pct": 100.0 * r.get("precision", float("nan")),
                     "auc": r["auc"],
                     "rotation_error_deg": r["rotation_error_deg"],
                     "translation_error_cm": 100.0 * r["translation_error_m"],
@@ -204,6 +237,7 @@ def table2(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                     continue
                 entry["methods"][m] = {
                     "recall_pct": 100.0 * r["recall"],
+                    "precision_pct": 100.0 * r.get("precision", float("nan")),
                     "rotation_error_deg": r["rotation_error_deg"],
                     "translation_error_cm": 100.0 * r["translation_error_m"],
                     "median_ms": r["median_ms"],
@@ -262,6 +296,7 @@ def table_long_md(table: Mapping[str, Any], cols: Sequence[tuple[str, str, str]]
 
 TABLE1_COLS = (
     ("recall_pct", "recall [%]", ".0f"),
+    ("precision_pct", "precision [%]", ".0f"),
     ("auc", "AUC", ".2f"),
     ("rotation_error_deg", "R_e [deg]", ".2f"),
     ("translation_error_cm", "t_e [cm]", ".0f"),
@@ -274,6 +309,7 @@ TABLE1_LONG_COLS = (
 )
 TABLE2_COLS = (
     ("recall_pct", "recall [%]", ".0f"),
+    ("precision_pct", "precision [%]", ".0f"),
     ("rotation_error_deg", "R_e [deg]", ".2f"),
     ("translation_error_cm", "t_e [cm]", ".0f"),
     ("median_ms", "time [ms]", ".0f"),

@@ -75,7 +75,7 @@ def _dataset_pairs(dataset_dir: str) -> list[Any]:
 def _dataset_pairs_cached(dataset_dir: str, mtime_ns: int) -> list[Any]:
     from graffmatch.evaluation.loop_closure_dataset import LoopClosureDataset
 
-    return list(LoopClosureDataset.load(Path(dataset_dir)))
+    return LoopClosureDataset.load(Path(dataset_dir)).with_negatives()
 
 
 @dataclass(frozen=True)
@@ -220,6 +220,14 @@ def _jsonable_info(info: Mapping[str, Any]) -> dict[str, Any]:
     return {str(k): conv(v) for k, v in info.items()}
 
 
+def _validity_score(out: _Output) -> float:
+    try:
+        v = float(out.info.get("validity_score", float(out.valid)))
+    except (TypeError, ValueError):
+        return float(out.valid)
+    return v if np.isfinite(v) else float(out.valid)
+
+
 def execute_task(task: Task) -> dict[str, Any]:
     """Run one method on one pair and evaluate it (runs in a worker; returns a JSON dict).
 
@@ -297,6 +305,11 @@ def execute_task(task: Task) -> dict[str, Any]:
                 "tau_d_deg": task.tau_d_deg,
                 "oir": M.oir_from_distances(d, task.tau_d_deg) if kind == "landmark" else None,
                 "inlier_mask": (d < task.tau_d_deg) if kind == "landmark" else None,
+                # validity (graffmatch.evaluation.validity): negatives have no right answer;
+                # each method's own signal, float(valid) where it has none
+                "negative": bool(getattr(pair, "negative", False)),
+                "validity_score": _validity_score(out),
+                "validity_signal": str(out.info.get("validity_signal", "valid")),
                 "status": "ok" if error is None else "error",
                 "error": error,
             }

@@ -18,18 +18,43 @@ def test_quick_benchmark_produces_the_report(tmp_path):
     suites = ["sim-downtown", "sim-openroad", "sim-suburban"]
     if (_shared_data_dir() / "balm_courtyard").is_dir():
         suites.append("balm_courtyard")
+    if (_shared_data_dir() / "kitti00_first6").is_dir():
+        suites.append("cross-dataset")  # negatives only: no row in Table I
     out = run_benchmark(suites, tmp_path / "bench", quick=True, workers=2, progress=False)
     report = out / "report"
-    for name in ("summary.md", "table1.md", "table1.json", "table2.md", "expectations.json",
-                 "rho.json", "metrics.json", "config.json"):
+    for name in (
+        "summary.md",
+        "table1.md",
+        "table1.json",
+        "table2.md",
+        "expectations.json",
+        "rho.json",
+        "metrics.json",
+        "config.json",
+    ):
         assert (report / name).is_file(), name
     assert any((report / "figures").glob("lmr_*.png"))
     assert any((report / "figures").glob("errors_*.png"))
     t1 = json.loads((report / "table1.json").read_text())
     assert {"GraffMatch", "GraffMatch-Naive", "CLIPPER-Rn", "CPMatch"} <= set(t1["methods"])
-    assert {r["suite"] for r in t1["rows"]} == set(suites)
+    assert {r["suite"] for r in t1["rows"]} == set(suites) - {"cross-dataset"}
     recalls = [r["methods"]["GraffMatch"]["recall_pct"] for r in t1["rows"]]
     assert all(0.0 <= x <= 100.0 for x in recalls if not math.isnan(float(x)))
     assert max(recalls) > 0.0  # GraffMatch registers some pair
     claims = json.loads((report / "expectations.json").read_text())
     assert {c["id"] for c in claims} >= {"graffmatch_best"}
+    # every suite's validity numbers, negatives included (at most 3 per suite in quick mode;
+    # a drive whose places all lie within 60 m of each other has none)
+    validity = json.loads((report / "validity.json").read_text())
+    ours = {r["suite"]: r for r in validity if r["method"] == "GraffMatch"}
+    assert set(ours) == {*suites, "all"}
+    built = json.loads((out / "benchmark.json").read_text())["build"]
+    for suite in suites:
+        assert ours[suite]["n_negatives"] == min(3, built[suite]["negatives"]), suite
+        if ours[suite]["n_negatives"]:
+            assert 0.0 <= ours[suite]["fpr_negatives"] <= 1.0
+    if "cross-dataset" in suites:
+        assert (
+            ours["cross-dataset"]["n_negatives"] == 3 and ours["cross-dataset"]["n_positives"] == 0
+        )
+    assert (report / "figures" / "reliability_graffmatch.png").is_file()

@@ -183,7 +183,6 @@ def test_records_hold_the_evaluation(tmp_path: Path) -> None:
 
 
 def test_gt_matches_method_registers_exactly(tmp_path: Path) -> None:
-    pytest.importorskip("graffmatch.registration.closed_form")
     out = run_study({"s": make_pairs(2)}, [], tmp_path, executor="serial", progress=False)
     for r in load_records(out):
         assert r["method"] == GT_METHOD

@@ -104,5 +104,7 @@ class FpfhRansac(MethodBase):
                 "n_correspondences": n_corr,
                 "n_source_points": len(src_pcd.points),
                 "n_target_points": len(tgt_pcd.points),
+                "validity_score": float(res.fitness) if valid else 0.0,
+                "validity_signal": "fitness",
             },
         )

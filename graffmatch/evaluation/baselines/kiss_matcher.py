@@ -86,5 +86,7 @@ class KissMatcher(MethodBase):
             info={
                 "n_rotation_inliers": int(matcher.get_num_rotation_inliers()),
                 "n_final_inliers": int(matcher.get_num_final_inliers()),
+                "validity_score": float(matcher.get_num_final_inliers()),
+                "validity_signal": "n_final_inliers",
             },
         )

@@ -127,6 +127,9 @@ class ScanContext(MethodBase):
             "shift": shift,
             "yaw_deg": float(np.degrees(yaw)),
             "ring_key_distance": float(np.linalg.norm(ring_key(ds) - ring_key(dt))),
+            # native signal: Scan Context's distance in [0, 1], lower = more alike
+            "validity_score": 1.0 - float(dist),
+            "validity_signal": "1 - sc_distance",
         }
         return make_transform(rot_z(yaw), np.zeros(3)), src, tgt, info
 
