@@ -167,7 +167,8 @@ class _Simulated:
     """A simulated suite: simulate into ``<suite_dir>/raw`` once, then read it as a KITTI folder.
 
     The raw data is reused when its ``sim_meta.json`` records the same request (world config,
-    seed, sensor, scan count): the simulator is deterministic, so it would be byte-identical.
+    seed, sensor, scan count, realism preset): the simulator is deterministic, so it would be
+    byte-identical. The suites run the ``realistic`` simulator (``SuiteSpec.realism``).
     """
 
     def __init__(self, spec_name: str, quick_scans: int) -> None:
@@ -183,6 +184,7 @@ class _Simulated:
             n_scans=min(self.quick_scans, spec.n_scans) if quick else spec.n_scans,
             sensor=spec.sensor,
             world_config=spec.world_config(),
+            realism=spec.realism,
             reuse=True,
             progress=progress,
         )

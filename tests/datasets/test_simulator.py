@@ -632,6 +632,26 @@ def test_gt_pose_noise_like_kitti(tmp_path):
                                      realism="kitti-gt"))  # fmt: skip
     err = np.linalg.norm(a.poses[:, :3, 3] - b.poses[:, :3, 3], axis=1)
     assert 0.1 < np.median(err) < 1.0
-    assert (tmp_path / "r/velodyne/000005.bin").read_bytes() == (
-        tmp_path / "k/velodyne/000005.bin"
-    ).read_bytes()  # same scans, only the written poses differ
+    assert (tmp_path / "r/labels/000005.label").read_bytes() == (
+        tmp_path / "k/labels/000005.label"
+    ).read_bytes()  # same scans; only poses differ (and kitti-gt scans are de-skewed)
+
+
+def test_realistic_drive_slows_in_turns():
+    """The ideal route keeps 1 m per scan through U-turns (~70 deg of yaw between two scans,
+    which made KISS-ICP diverge); the realistic one slows to keep lateral acceleration low."""
+    from graffmatch.datasets.simulator import TrajectoryConfig
+
+    w = build_world("suburban", 1)
+
+    def yaw_steps(cfg):
+        T = plan_route(w, 400, 1, cfg).T_world_lidar
+        yaw = np.arctan2(T[:, 1, 0], T[:, 0, 0])
+        return np.degrees(np.abs(np.angle(np.exp(1j * np.diff(yaw))))), T
+
+    ideal, _ = yaw_steps(TrajectoryConfig())
+    real, T = yaw_steps(TrajectoryConfig(max_lateral_accel=2.0))
+    assert ideal.max() > 40.0
+    assert real.max() < 20.0
+    step = np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1)
+    assert step.max() <= 1.01 and step.min() < 0.4  # 10 m/s on straights (3D), slow in turns

@@ -13,7 +13,12 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from graffmatch.datasets.simulator import writer
-from graffmatch.datasets.simulator.motion import perturb_poses, sweep_poses, sweep_twist
+from graffmatch.datasets.simulator.motion import (
+    deskew_scan,
+    perturb_poses,
+    sweep_poses,
+    sweep_twist,
+)
 from graffmatch.datasets.simulator.movers import place_movers
 from graffmatch.datasets.simulator.realism import RealismConfig, get_realism, noisy_labels
 from graffmatch.datasets.simulator.sensor import SensorProfile, get_profile, render_scan
@@ -117,6 +122,8 @@ def simulate_dataset(
     cfg = realistic_world_config(cfg, real)
     prof = get_profile(profile if profile is not None else sensor)
     tcfg = trajectory_config or TrajectoryConfig(mount_height=prof.mount_height)
+    if real.trajectory:
+        tcfg = TrajectoryConfig.model_validate({**tcfg.model_dump(), **real.trajectory})
     request = {
         "generator": "graffmatch.datasets.simulator",
         "version": SIMULATOR_VERSION,
@@ -145,6 +152,12 @@ def simulate_dataset(
             real.pedestrians_per_km,
         )  # fmt: skip
     twists = _sweep_twists(traj.T_world_lidar) if real.motion_distortion else None
+    poses = traj.T_world_lidar
+    if real.gt_pose_noise_m > 0 or real.gt_pose_noise_deg > 0:
+        poses = perturb_poses(
+            poses, np.random.default_rng([int(seed), 0x9057]), real.gt_pose_noise_m,
+            real.gt_pose_noise_deg,
+        )  # fmt: skip
     vis_scan, vis_lm, vis_cnt = [], [], []
     for i, T in enumerate(traj.T_world_lidar):
         sweep = None if twists is None else sweep_poses(T, twists[i], prof.n_columns)
@@ -153,6 +166,9 @@ def simulate_dataset(
             world, T, prof, _scan_rng(seed, i), return_landmarks=True, sweep=sweep, dynamic=dyn
         )
         labels = noisy_labels(labels, real, np.random.default_rng([int(seed), 0x1AB, i]))
+        if real.deskew and n > 1:
+            a, b = max(i - 1, 0), min(i + 1, n - 1)
+            pts = deskew_scan(pts, poses[a], poses[b], float(b - a))
         writer.write_scan(out, i, pts, labels)
         c = np.bincount(lm[lm >= 0], minlength=len(world.landmarks))
         nz = np.flatnonzero(c)
@@ -161,12 +177,6 @@ def simulate_dataset(
         vis_cnt.append(c[nz])
         if progress is not None:
             progress(i + 1, n)
-    poses = traj.T_world_lidar
-    if real.gt_pose_noise_m > 0 or real.gt_pose_noise_deg > 0:
-        poses = perturb_poses(
-            poses, np.random.default_rng([int(seed), 0x9057]), real.gt_pose_noise_m,
-            real.gt_pose_noise_deg,
-        )  # fmt: skip
     writer.write_poses(out / "poses.txt", poses)
     writer.write_calib(out / "calib.txt")
     writer.write_times(out / "times.txt", traj.times)

@@ -5,7 +5,8 @@ streets it has driven least, and especially streets it has driven only in the *o
 so the same street comes back in the same and in the opposite direction. Lanes are drawn per
 street (right-hand traffic), and occasional mid-block U-turns add opposite-direction passes a
 few metres apart. The lane polyline is densified, Gaussian-smoothed (rounded turns) and
-resampled at ``step_m``; the sensor is placed ``mount_height`` above the road and tilted with
+resampled at ``step_m`` (or, with ``max_lateral_accel``, every ``scan_period_s`` of a drive
+that slows down in curves); the sensor is placed ``mount_height`` above the road and tilted with
 the local ground slope.
 """
 
@@ -46,6 +47,14 @@ class TrajectoryConfig(BaseModel):
     inner_only: bool = Field(
         True, description="drive only on streets with blocks on both sides (when the grid allows)"
     )
+    max_lateral_accel: float | None = Field(
+        None,
+        gt=0,
+        description="slow down in curves so that v^2 * curvature stays below this [m/s^2]; "
+        "scans are then taken every scan_period_s, not every step_m (None: a constant "
+        "step_m per scan, as the ideal simulator does, even through U-turns)",
+    )
+    min_speed: float = Field(1.5, gt=0, description="lowest speed in the tightest turns [m/s]")
 
 
 @dataclass(frozen=True)
@@ -203,7 +212,10 @@ def _plan_one(
     ds = np.linalg.norm(np.diff(D, axis=0), axis=1)
     arc = np.concatenate([[0.0], np.cumsum(ds)])
     start = 30.0  # skip the smoothing transient at the start
-    q = start + np.arange(n_scans) * cfg.step_m
+    if cfg.max_lateral_accel is None:
+        q = start + np.arange(n_scans) * cfg.step_m
+    else:
+        q = start + _timed_arc(D, arc, start, n_scans, cfg)
     if q[-1] > arc[-1]:
         raise InvalidInputError("route too short for the requested number of scans")
     xy = np.stack([np.interp(q, arc, D[:, 0]), np.interp(q, arc, D[:, 1])], 1)
@@ -215,6 +227,21 @@ def _plan_one(
     T = poses_on_ground(world, xy, fwd2, cfg.mount_height)
     times = np.arange(n_scans) * cfg.scan_period_s
     return Trajectory(T, times, lane_q.astype(np.int64), q - start)
+
+
+def _timed_arc(D: NDArray, arc: NDArray, start: float, n_scans: int, cfg: TrajectoryConfig):
+    """Arc lengths (from ``start``) of scans every ``scan_period_s`` when the car drives at
+    ``step_m / scan_period_s`` on straights and slows so that v^2 kappa <= max_lateral_accel."""
+    heading = np.unwrap(np.arctan2(np.gradient(D[:, 1]), np.gradient(D[:, 0])))
+    kappa = np.abs(np.gradient(heading, arc))
+    # look ahead and behind one second of driving: brake before a curve, not in it
+    kappa = gaussian_filter1d(kappa, 5.0 / 0.1, mode="nearest")
+    v_max = cfg.step_m / cfg.scan_period_s
+    v = np.clip(np.sqrt(cfg.max_lateral_accel / np.maximum(kappa, 1e-9)), cfg.min_speed, v_max)
+    t = np.concatenate([[0.0], np.cumsum(np.diff(arc) / (0.5 * (v[1:] + v[:-1])))])
+    t_start = np.interp(start, arc, t)
+    q = np.interp(t_start + np.arange(n_scans) * cfg.scan_period_s, t, arc)
+    return q - start
 
 
 def poses_on_ground(world: World, xy: NDArray, forward_xy: NDArray, mount_height: float) -> NDArray:
