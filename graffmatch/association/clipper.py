@@ -93,9 +93,9 @@ class ClipperConfig(BaseModel):
         ),
     )
     greedy_min_work: int = Field(
-        200_000,
+        50_000,
         ge=0,
-        description="floor of that bound in edge visits (~1 ms), so small graphs try every start",
+        description="floor of that bound in edge visits, so small graphs try every start",
     )
 
 
@@ -521,7 +521,8 @@ def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_wo
       * a start already inside a clique found here is skipped (it would regrow that clique);
       * a growth stops as soon as 1 + (size + candidates - 1) w_max <= the best objective so far
         (``prune_to_best``) or <= ``lower_bound``;
-      * the total of edges visited stops at ``max_work`` (deterministic, not a timer).
+      * the total of edges visited stops at ``max_work``, also within a growth (deterministic,
+        not a timer; a growth cut short is dropped).
     Returns (members, offsets, objectives, work): clique c is members[offsets[c]:offsets[c+1]]."""
     m = indptr.shape[0] - 1
     w_max = 0.0
@@ -569,7 +570,7 @@ def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_wo
             # their current scores (<= bs each) plus j (j - 1) / 2 w_max among themselves;
             # the objective, quasi-convex in j, is largest at j = 0 or j = n_cand.
             bound = 1.0 + (2.0 * total_w + 2.0 * n_cand * bs + n_cand * (n_cand - 1.0) * w_max) / (k + n_cand)
-            if bound <= best and (2.0 * total_w + k) / k <= best:
+            if (bound <= best and (2.0 * total_w + k) / k <= best) or work >= max_work:
                 aborted = True
                 break
             clique[k] = bi

@@ -262,6 +262,6 @@ def test_greedy_work_budget_is_respected_and_deterministic():
     a = solve_clipper(W, cfg)
     b = solve_clipper(W, cfg)
     assert np.array_equal(a.selected, b.selected)
-    # the budget stops before the next start once the visits exceed it (a start finishes)
-    assert a.info["greedy_work"] <= 0.5 * W.nnz + 2 * W.shape[0] * 25 + W.nnz
+    # the budget also stops a growth: at most one step (<= 3 m visits) beyond it
+    assert 0 < a.info["greedy_work"] <= 0.5 * W.nnz + 3 * W.shape[0]
     assert set(a.selected.tolist()) == set(range(25))
