@@ -16,7 +16,7 @@ from typing import Annotated
 
 import typer
 
-from graffmatch.cli import calibrate, config, data, evaluation, scans
+from graffmatch.cli import calibrate, config, data, evaluation, loops, scans
 from graffmatch.cli.common import __version__, out, reset_state
 
 EPILOG_MAIN = """\
@@ -99,11 +99,9 @@ for _group in (config, scans, config.config_app, data, evaluation, calibrate):
     else:
         app.registered_commands.extend(_group.commands.registered_commands)
 
+loops.register(app)  # loop closure over whole drives (its module adds its own commands)
+
 __all__ = ["__version__", "app"]
-
-from graffmatch.cli import loops as _loops_cli  # noqa: E402  (loop closure over whole drives)
-
-_loops_cli.register(app)
 
 
 if __name__ == "__main__":  # pragma: no cover
