@@ -161,6 +161,19 @@ def _cases(rows: Sequence[Mapping[str, Any]], suite: str) -> list[Any]:
     return sorted(cs, key=str)
 
 
+def _cell(row: Mapping[str, Any], **extra: Any) -> dict[str, Any]:
+    """One method's numbers in a table row: recall and precision [%], errors (deg, cm), counts."""
+    return {
+        "recall_pct": 100.0 * row["recall"],
+        "precision_pct": 100.0 * row.get("precision", float("nan")),
+        **extra,
+        "rotation_error_deg": row["rotation_error_deg"],
+        "translation_error_cm": 100.0 * row["translation_error_m"],
+        "n": row["n"],
+        "n_errors": row["n_errors"],
+    }
+
+
 def table1(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """Table I analogue: per suite x case, recall [%], LMR AUC, R_e [deg], t_e [cm]."""
     methods = ordered(
@@ -187,17 +200,9 @@ def table1(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                 r = by.get((suite, case, m))
                 if r is None:
                     continue
-                entry["methods"][m] = {
-                    "recall_pct": 100.0 * r["recall"],
-                    "precision_pct": 100.0 * r.get("precision", float("nan")),
-                    "auc": r["auc"],
-                    "rotation_error_deg": r["rotation_error_deg"],
-                    "translation_error_cm": 100.0 * r["translation_error_m"],
-                    "mean_associations": r["mean_associations"],
-                    "estimate_pct": 100.0 * r["estimate_rate"],
-                    "n": r["n"],
-                    "n_errors": r["n_errors"],
-                }
+                entry["methods"][m] = _cell(
+                    r, auc=r["auc"], mean_associations=r["mean_associations"]
+                ) | {"estimate_pct": 100.0 * r["estimate_rate"]}
             vals = entry["methods"]
             # Bold as in the paper: the best of the compared methods; GraffMatch's ablations
             # (Naive, lines, planes) are shown but do not compete.
@@ -235,15 +240,7 @@ def table2(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
                 r = by.get((suite, case, m))
                 if r is None:
                     continue
-                entry["methods"][m] = {
-                    "recall_pct": 100.0 * r["recall"],
-                    "precision_pct": 100.0 * r.get("precision", float("nan")),
-                    "rotation_error_deg": r["rotation_error_deg"],
-                    "translation_error_cm": 100.0 * r["translation_error_m"],
-                    "median_ms": r["median_ms"],
-                    "n": r["n"],
-                    "n_errors": r["n_errors"],
-                }
+                entry["methods"][m] = _cell(r, median_ms=r["median_ms"])
             finite = [v["recall_pct"] for v in entry["methods"].values()]
             best = max(finite) if finite else None
             entry["best_recall_pct"] = [
