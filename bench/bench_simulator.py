@@ -4,6 +4,7 @@
     .venv/bin/python bench/bench_simulator.py --scans 50 --json out.json
     .venv/bin/python bench/bench_simulator.py --write         # include writing KITTI files
     .venv/bin/python bench/bench_simulator.py --accuracy      # also score the front end vs GT
+    .venv/bin/python bench/bench_simulator.py --realism realistic  # rough facades, movers, motion
 
 The target is <= 0.2 s per 64-beam scan. "render" is ray casting + noise + labels;
 "write" adds the .bin/.label files (with --write). World build and Embree scene build are
@@ -25,12 +26,19 @@ import numpy as np
 from graffmatch.datasets.simulator import (
     PROFILES,
     STYLES,
+    TrajectoryConfig,
     build_world,
     extraction_accuracy,
+    get_profile,
     gt_landmarks_in_scan,
     plan_route,
     render_scan,
+    world_preset,
 )
+from graffmatch.datasets.simulator.motion import sweep_poses
+from graffmatch.datasets.simulator.movers import place_movers
+from graffmatch.datasets.simulator.realism import get_realism, noisy_labels
+from graffmatch.datasets.simulator.simulate import _sweep_twists, realistic_world_config
 from graffmatch.datasets.simulator.writer import write_scan
 
 
@@ -68,19 +76,36 @@ def accuracy(style: str, profile: str, n_scans: int, seed: int, min_points: int)
     return out
 
 
-def bench(style: str, profile: str, n_scans: int, seed: int, write: bool) -> dict:
+def bench(
+    style: str, profile: str, n_scans: int, seed: int, write: bool, realism: str = "ideal"
+) -> dict:
+    """Time per scan as ``simulate_dataset`` renders it (sweep poses, movers, label noise)."""
+    real = get_realism(realism)
+    cfg = realistic_world_config(world_preset(style), real)
     t0 = time.perf_counter()
-    world = build_world(style, seed)
+    world = build_world(cfg, seed)
     t_world = time.perf_counter() - t0
     t0 = time.perf_counter()
     _ = world.scene
     t_scene = time.perf_counter() - t0
-    traj = plan_route(world, n_scans, seed)
+    n_cols = get_profile(profile).n_columns
+    tcfg = TrajectoryConfig.model_validate({**TrajectoryConfig().model_dump(), **real.trajectory})
+    traj = plan_route(world, n_scans, seed, tcfg)
+    movers = None
+    if real.moving_cars_per_km > 0 or real.pedestrians_per_km > 0:
+        movers = place_movers(world, np.random.default_rng(seed), real.moving_cars_per_km,
+                              real.pedestrians_per_km)  # fmt: skip
+    twists = _sweep_twists(traj.T_world_lidar) if real.motion_distortion else None
     times, n_pts, lines, planes = [], [], [], []
     with tempfile.TemporaryDirectory() as tmp:
         for i, T in enumerate(traj.T_world_lidar):
             t0 = time.perf_counter()
-            pts, labels, lm = render_scan(world, T, profile, i, return_landmarks=True)
+            sweep = None if twists is None else sweep_poses(T, twists[i], n_cols)
+            dyn = None if movers is None else movers.mesh(world, float(traj.times[i]), T[:2, 3])
+            pts, labels, lm = render_scan(
+                world, T, profile, i, return_landmarks=True, sweep=sweep, dynamic=dyn
+            )
+            labels = noisy_labels(labels, real, np.random.default_rng(i))
             if write:
                 write_scan(Path(tmp), i, pts, labels)
             times.append(time.perf_counter() - t0)
@@ -91,6 +116,7 @@ def bench(style: str, profile: str, n_scans: int, seed: int, write: bool) -> dic
     t = np.array(times)
     return {
         "style": style,
+        "realism": realism,
         "profile": profile,
         "scans": n_scans,
         "median_s": float(np.median(t)),
@@ -113,17 +139,21 @@ def main() -> None:
     ap.add_argument("--write", action="store_true", help="include writing the KITTI files")
     ap.add_argument("--accuracy", action="store_true", help="score the default front end vs GT")
     ap.add_argument("--min-points", type=int, default=30, help="GT seen with >= this many points")
+    ap.add_argument("--realism", default="ideal", help="realism preset: ideal | realistic")
     ap.add_argument("--json", type=Path, default=None, help="write results as JSON here")
     args = ap.parse_args()
     rows = [
-        bench(s, p, args.scans, args.seed, args.write) for s in args.styles for p in args.profiles
+        bench(s, p, args.scans, args.seed, args.write, args.realism)
+        for s in args.styles
+        for p in args.profiles
     ]
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     hdr = (
         f"{'style':<10} {'profile':<7} {'median s':>9} {'p95 s':>7} {'points':>7} "
         f"{'world s':>7} {'scene s':>7} {'tris':>7} {'GT lines':>8} {'GT planes':>9}"
     )
-    print(f"simulator benchmark ({args.scans} scans each, write={args.write}, load avg {load:.1f})")
+    print(f"simulator benchmark ({args.scans} scans each, realism={args.realism}, "
+          f"write={args.write}, load avg {load:.1f})")  # fmt: skip
     print(hdr)
     print("-" * len(hdr))
     for r in rows:

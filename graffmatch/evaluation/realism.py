@@ -155,7 +155,11 @@ def scan_realism(points: NDArray, extractor) -> tuple[LandmarkSet, dict]:
     scat = scattered_mask(P)
     c = ls.counts()
     rms = plane_flatness_rms(ls)
+    rng_ = np.linalg.norm(P[:, :3].astype(float), axis=1)
     return ls, {
+        "points": int(len(P)),
+        "range_median_m": float(np.median(rng_)) if len(P) else float("nan"),
+        "intensity_mean": float(np.mean(P[:, 3])) if len(P) and P.shape[1] > 3 else float("nan"),
         "poles": int(c["lines"]),
         "planes": int(c["planes"]),
         "plane_rms_m": rms.tolist(),
@@ -202,6 +206,9 @@ REALISM_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("ground_share", "ground share of points", ".2f"),
     ("trans_err_median_m", "matcher translation error, median [m]", ".2f"),
     ("graph_density", "consistency-graph density", ".2f"),
+    ("points_per_scan", "points per scan", ".0f"),
+    ("range_median_m", "median range [m]", ".1f"),
+    ("intensity_mean", "mean intensity", ".2f"),
 )
 
 
@@ -248,6 +255,9 @@ def sequence_realism(
         if recs
         else float("nan"),
         "graph_density": mean("graph_density", recs),
+        "points_per_scan": mean("points", scans),
+        "range_median_m": mean("range_median_m", scans),
+        "intensity_mean": mean("intensity_mean", scans),
         "n_pairs": len(recs),
         "n_scans": len(scans),
     }

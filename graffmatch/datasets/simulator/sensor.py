@@ -195,11 +195,14 @@ def render_scan(
         S = np.asarray(sweep, float)
         if S.shape != (prof.n_columns, 4, 4):
             raise InvalidInputError(f"sweep must be ({prof.n_columns}, 4, 4), got {S.shape}")
-        # rays are beam-major: ray k is column k % n_columns
-        Rc = np.tile(S[:, :3, :3], (prof.n_beams, 1, 1))
+        # rays are beam-major: ray k is column k % n_columns; per-column rotations broadcast
+        # over the beams (no (N, 3, 3) copy)
+        Rc = S[:, :3, :3]
         rays[:, :3] = np.tile(S[:, :3, 3], (prof.n_beams, 1))
+        shape = (prof.n_beams, prof.n_columns)
+        d0, d1, d2 = (dT[j].reshape(shape) for j in range(3))
         for k in range(3):
-            rays[:, 3 + k] = Rc[:, k, 0] * dT[0] + Rc[:, k, 1] * dT[1] + Rc[:, k, 2] * dT[2]
+            rays[:, 3 + k] = (Rc[:, k, 0] * d0 + Rc[:, k, 1] * d1 + Rc[:, k, 2] * d2).reshape(-1)
     ans = world.scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
     t_hit = ans["t_hit"].numpy()
     prim = ans["primitive_ids"].numpy()
