@@ -582,21 +582,20 @@ def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_wo
             is_cand[bi] = False
             score[bi] = 0.0
             for t in range(indptr[bi], indptr[bi + 1]):
+                # branch-free: non-candidates (score 0) add exact zeros
                 j = indices[t]
-                if is_cand[j]:
-                    score[j] += data[t]
-                    adjacent[j] = True
+                c = is_cand[j]
+                score[j] += data[t] * c
+                adjacent[j] |= c
             new_n = 0
             for c in range(n_cand):
                 v = cand[c]
-                if v == bi:
-                    continue
+                keep = adjacent[v] and v != bi
                 is_cand[v] = False
-                if adjacent[v]:
-                    adjacent[v] = False
-                    cand[new_n] = v
-                    new_n += 1
-                else:
+                adjacent[v] = False
+                cand[new_n] = v
+                new_n += keep
+                if not keep:
                     score[v] = 0.0
             work += (indptr[bi + 1] - indptr[bi]) + 2 * n_cand
             n_cand = new_n
