@@ -62,15 +62,15 @@ def loops(
     kind: Annotated[str, typer.Option(help="Dataset kind for open_dataset (folder, kitti, kitti360, nclt).")] = "folder",
     retriever: Annotated[Retriever, typer.Option(help="Candidate retrieval.")] = Retriever.descriptor,
     top_k: Annotated[int | None, typer.Option(min=1, help="Candidates verified per query.")] = None,
-    exclude_seconds: Annotated[float | None, typer.Option(min=0, help="Skip scans this recent [s].")] = None,
+    exclude_seconds: Annotated[float | None, typer.Option(min=0, help="Skip scans this recent (s).")] = None,
     exclude_frames: Annotated[int | None, typer.Option(min=0, help="Also skip this many recent scans.")] = None,
-    radius: Annotated[float | None, typer.Option(min=0, help="Radius retriever: search radius [m].")] = None,
+    radius: Annotated[float | None, typer.Option(min=0, help="Radius retriever: search radius (m).")] = None,
     min_confidence: Annotated[float | None, typer.Option(min=0, max=1, help="Report loops from this confidence.")] = None,
     optimize: Annotated[bool, typer.Option(help="Pose graph with GTSAM; KITTI/TUM trajectories, ATE/RPE.")] = False,
     odometry: Annotated[
         str, typer.Option(help="Odometry for --optimize/radius: drift | gt | kiss-icp | PATH (KITTI poses).")
     ] = "drift",
-    drift_yaw: Annotated[float, typer.Option(help="Simulated drift: heading bias [deg/100 m].")] = 3.0,
+    drift_yaw: Annotated[float, typer.Option(help="Simulated drift: heading bias (deg per 100 m).")] = 3.0,
     drift_seed: Annotated[int, typer.Option(help="Simulated drift seed.")] = 0,
     executor: Annotated[LoopExecutor, typer.Option(help="Where extraction and verification run.")] = LoopExecutor.local,
     address: Annotated[str | None, typer.Option(help="Cluster address (dask/ray).")] = None,

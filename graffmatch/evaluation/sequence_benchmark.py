@@ -179,7 +179,7 @@ def run_scan_context_icp(dataset, retrieval: RetrievalConfig, icp: bool = True,
         if progress:
             progress("scan context", i + 1, n)
     desc_s = time.perf_counter() - t0
-    r = ScanContextRetriever(retrieval.model_copy(update={"top_k": 1}))
+    r = ScanContextRetriever(retrieval.model_copy(update={"top_k": max(retrieval.top_k, 10)}))
     preds, cands = [], {}
     t1 = time.perf_counter()
     for q in range(n):
