@@ -146,8 +146,9 @@ def test_pose_graph_with_drift_and_cli_files(drives, tmp_path):
     assert "exclude_frames: 30" in (target / "config.yaml").read_text()
 
 
-def test_ray_extracts_on_a_local_cluster(drives, tmp_path):
-    pytest.importorskip("ray")
+@pytest.mark.parametrize("executor", ["ray", "dask"])
+def test_cluster_executors_extract_on_a_local_cluster(drives, tmp_path, executor):
+    pytest.importorskip("ray" if executor == "ray" else "distributed")
     import shutil
 
     ds, _, _ = drives["straight"]
@@ -159,7 +160,7 @@ def test_ray_extracts_on_a_local_cluster(drives, tmp_path):
     (sub / "poses.txt").write_text("\n".join(rows) + "\n")
     shutil.copy(ds.root / "calib.txt", sub / "calib.txt")
     small = open_dataset("folder", sub)
-    s = run_loops(small, tmp_path / "out", _config(), executor="ray", workers=1)
+    s = run_loops(small, tmp_path / "out", _config(), executor=executor, workers=1)
     assert s["landmarks"]["extracted"] == 6
     assert s["n_loops"] == 0
     assert all((tmp_path / "out" / "landmarks" / f"{i:06d}.npz").is_file() for i in range(6))
