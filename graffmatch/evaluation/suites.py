@@ -195,7 +195,9 @@ class _Simulated:
 
 #: Scans of a quick simulated suite (default 160). The realistic drive slows down in turns, so
 #: 160 scans of downtown close no loop (0 revisits; 240 scans: 59, measured with plan_route).
-QUICK_SIM_SCANS: dict[str, int] = {"sim-downtown": 240}
+#: All three use 240: the GraffMatch recall floors of tests/evaluation/test_quick_benchmark.py
+#: were measured on these (open road at 160 scans: 4 of 7 positive pairs, too few to judge).
+QUICK_SIM_SCANS: dict[str, int] = {"sim-downtown": 240, "sim-suburban": 240, "sim-openroad": 240}
 
 #: Front end of each simulated suite. The default extractor (planes of >= 10 m^2 within 50 m)
 #: keeps ~15 planes per place, so every pair's IIR stays above 0.03 and case 3 would be empty.
