@@ -585,7 +585,7 @@ def test_motion_distortion_is_present_and_deskew_removes_it(realistic):
     i = 12
     twist = sweep_twist(T[i - 1], T[i + 1])
     sweep = sweep_poses(T[i], twist, PROFILES["hdl64"].n_columns)
-    pts, _ = render_scan(w, T[i], "hdl64", 0, sweep=sweep)
+    pts, _, lm = render_scan(w, T[i], "hdl64", 0, sweep=sweep, return_landmarks=True)
     # where each point really is: taken from its column's pose
     n = PROFILES["hdl64"].n_columns
     az = np.arctan2(pts[:, 1], pts[:, 0])
@@ -598,6 +598,18 @@ def test_motion_distortion_is_present_and_deskew_removes_it(realistic):
     assert np.percentile(raw_err, 90) > 0.35 and np.median(raw_err) > 0.15
     assert np.percentile(fix_err, 99) < 0.02
     assert np.array_equal(fixed[:, 3], pts[:, 3])
+    # the rendering really moved: on GT planes facing the driving direction, the points placed
+    # with their column's pose lie on the plane, placed with the scan's pose they do not
+    L = w.landmarks
+    drive = T[i + 1][:3, 3] - T[i - 1][:3, 3]
+    drive /= np.linalg.norm(drive)
+    on = (lm >= 0) & (L.types[np.maximum(lm, 0)] == 2)
+    facing = on & (np.abs(L.directions[np.maximum(lm, 0)] @ drive) > 0.9)
+    n, a = L.directions[lm[facing]], L.anchors[lm[facing]]
+    d_true = np.abs(np.einsum("ij,ij->i", true[facing] - a, n))
+    d_naive = np.abs(np.einsum("ij,ij->i", transform_points(T[i], pts[facing, :3]) - a, n))
+    assert facing.sum() > 200
+    assert np.median(d_true) < 0.05 and np.median(d_naive) > 0.15
 
 
 def test_movers_move_and_label_noise_hits_poles(realistic):
