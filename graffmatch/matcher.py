@@ -2,7 +2,10 @@
 
 Pipeline (paper, Sec. Method): intra-scan invariant distance matrices (once per scan) ->
 all-to-all same-type putative associations -> sparse consistency graph -> CLIPPER densest
-clique -> closed-form line/plane registration with its condition number.
+clique -> closed-form line/plane registration with its condition number. Beyond the paper,
+the verification layer turns the graph into several distinct hypotheses, scores each by
+point-level evidence and sets ``valid`` only when the best is clearly right and clearly beats
+its best rival (``graffmatch.verification``).
 """
 
 from __future__ import annotations
@@ -22,6 +25,9 @@ from graffmatch.errors import DegenerateGeometryError, InvalidInputError
 from graffmatch.geometry.distance import pairwise_distances
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.registration.closed_form import register_landmarks
+from graffmatch.verification.config import VerificationConfig
+from graffmatch.verification.decision import Hypothesis
+from graffmatch.verification.verify import Evidence, verify_graph
 
 TypeName = Literal["point", "line", "plane"]
 _TYPE_IDS = {"point": LandmarkType.POINT, "line": LandmarkType.LINE, "plane": LandmarkType.PLANE}
@@ -70,15 +76,22 @@ class GraffMatchConfig(BaseModel):
         ),
     )
     reject_residual_deg: float = Field(5.0, gt=0, description="angle residual gate [deg]")
+    verification: VerificationConfig = Field(
+        default_factory=VerificationConfig,
+        description="multi-hypothesis verification: what valid=True rests on",
+    )
 
 
 @dataclass
 class MatchResult:
     """Outcome of one match. ``T_target_source`` maps source-frame points into the target frame.
 
-    ``valid`` is False (with ``message`` saying why) when too few associations were found or the
-    registration is degenerate; ``T_target_source`` is then the best effort, or None when no
-    estimate exists. Never a silent identity.
+    ``valid`` is True only when the verified evidence says the transform is right: the best
+    hypothesis explains enough of both scans (``overlap``) and beats its best distinct rival
+    (``runner_up``) by ``margin`` (1 - rival score / best score). Otherwise ``message`` says why,
+    e.g. "ambiguous: a 178 deg / 0.4 m alternative ... scores 0.93 of the best", and
+    ``T_target_source`` is the best effort, or None when no estimate exists. Never a silent
+    identity. ``confidence`` is the calibrated probability that the transform is right.
     """
 
     T_target_source: NDArray[np.float64] | None
@@ -93,6 +106,11 @@ class MatchResult:
     n_putative: int = 0
     n_edges: int = 0
     info: dict = field(default_factory=dict)
+    confidence: float = 0.0
+    overlap: float = 0.0
+    margin: float = 0.0
+    runner_up: Hypothesis | None = None
+    hypotheses: list[Hypothesis] = field(default_factory=list)
 
     def __repr__(self) -> str:
         T = "None" if self.T_target_source is None else np.array2string(
@@ -100,7 +118,9 @@ class MatchResult:
         ).replace("\n", "")
         ms = ", ".join(f"{k}={v * 1e3:.1f}ms" for k, v in self.timings.items())
         return (
-            f"MatchResult(valid={self.valid}, associations={len(self.associations)}, "
+            f"MatchResult(valid={self.valid}, confidence={self.confidence:.3f}, "
+            f"overlap={self.overlap:.3f}, margin={self.margin:.3f}, hypotheses={len(self.hypotheses)}, "
+            f"associations={len(self.associations)}, "
             f"score={self.score:.2f}, kappa={self.kappa:.3g}, degenerate={self.degenerate}, "
             f"putative={self.n_putative}, edges={self.n_edges}, message={self.message!r},\n"
             f"  T_target_source={T},\n  timings: {ms})"
@@ -119,6 +139,11 @@ class MatchResult:
             "timings": self.timings,
             "n_putative": self.n_putative,
             "n_edges": self.n_edges,
+            "confidence": self.confidence,
+            "overlap": self.overlap,
+            "margin": self.margin,
+            "runner_up": None if self.runner_up is None else self.runner_up.to_dict(),
+            "hypotheses": [h.to_dict() for h in self.hypotheses],
         }
 
 
@@ -144,8 +169,9 @@ def match_with_distances(
     config: GraffMatchConfig | None = None,
     associations: ArrayLike | None = None,
     timings: dict[str, float] | None = None,
+    evidence: Evidence | None = None,
 ) -> MatchResult:
-    """Graph + solver + registration for any pair of intra-scan distance matrices.
+    """Graph + solver + registration (+ verification) for any pair of intra-scan distance matrices.
 
     GraffMatch passes d_Graff matrices; CLIPPER-R^n or CLIPPER-CP pass Euclidean ones.
     """
@@ -174,6 +200,8 @@ def match_with_distances(
         timings["total"] = sum(timings.values())
         return MatchResult(None, kappa=np.inf, degenerate=True, valid=False,
                            message="no consistent associations", timings=timings, **common)
+    if cfg.verification.enabled:
+        return _verified_result(source, target, graph, sol, cfg, timings, common, evidence)
     try:
         est, inliers = _register(source, target, assoc, weights, cfg)
     except DegenerateGeometryError as exc:
@@ -196,6 +224,40 @@ def match_with_distances(
     return MatchResult(
         est.T_target_source, kappa=est.kappa, degenerate=est.degenerate, valid=not problems,
         message="; ".join(problems) or "ok", timings=timings, **common,
+    )
+
+
+def _verified_result(source, target, graph, sol, cfg: GraffMatchConfig, timings, common,
+                     evidence: Evidence | None) -> MatchResult:
+    """Hypotheses from the graph, registered, scored and decided (``graffmatch.verification``)."""
+    gate = None if cfg.reject_residual_m is None else (cfg.reject_residual_m, cfg.reject_residual_deg)
+    vt: dict[str, float] = {}
+    verdict, hyps = verify_graph(
+        source, target, graph.associations, graph.weights.tocsr(), sol.selected, cfg.verification,
+        cfg.solver, cfg.kappa_max, gate, cfg.min_associations, evidence, vt,
+    )
+    timings["registration"] = vt.get("registration", 0.0)
+    timings["verification"] = vt.get("hypotheses", 0.0) + vt.get("evidence", 0.0)
+    timings["total"] = sum(timings.values())
+    best = verdict.best
+    if best is None:
+        return MatchResult(None, kappa=np.inf, degenerate=True, valid=False,
+                           message="; ".join(verdict.problems), timings=timings, **common)
+    problems = list(verdict.problems)
+    if best.n_associations < cfg.min_associations:
+        problems.insert(0, f"only {best.n_associations} associations (< {cfg.min_associations})")
+    problems += reach_problems(source, target, best.T_target_source)
+    common.update(associations=best.associations, score=best.objective,
+                  weights=np.ones(best.n_associations))
+    common["info"].update(origin=best.origin, rival_ratio=verdict.rival_ratio,
+                          score_parts=best.score_parts, clipper_selected=len(sol.selected))
+    valid = not problems
+    return MatchResult(
+        best.T_target_source, kappa=best.kappa, degenerate=best.degenerate, valid=valid,
+        message="; ".join(problems) or "ok", timings=timings,
+        confidence=verdict.confidence if valid else min(verdict.confidence, 0.5),
+        overlap=best.score, margin=verdict.margin, runner_up=verdict.runner_up,
+        hypotheses=hyps, **common,
     )
 
 
@@ -250,15 +312,29 @@ class GraffMatcher:
         source: LandmarkSet,
         target: LandmarkSet,
         associations: ArrayLike | None = None,
+        evidence: Evidence | None = None,
     ) -> MatchResult:
-        """Match ``source`` to ``target``; indices in the result refer to the inputs."""
+        """Match ``source`` to ``target``; indices in the result refer to the inputs.
+
+        ``evidence`` (optional) replaces the landmarks' support points as what hypotheses are
+        scored against, e.g. the raw scans (see ``graffmatch.pipeline``)."""
         _validate_input(source, "source")
         _validate_input(target, "target")
         cfg = self.config
         src, src_idx = _filter_types(source, cfg.landmark_types)
         tgt, tgt_idx = _filter_types(target, cfg.landmark_types)
         if associations is not None:
-            A = np.asarray(associations, dtype=np.int64).reshape(-1, 2)
+            try:
+                A = np.asarray(associations, dtype=np.int64).reshape(-1, 2)
+            except (TypeError, ValueError) as exc:
+                raise InvalidInputError(f"associations must be an (k, 2) integer array: {exc}") from None
+            bad = (A < 0) | (A >= np.array([len(source), len(target)]))
+            if bad.any():
+                r = int(np.flatnonzero(bad.any(1))[0])
+                raise InvalidInputError(
+                    f"associations[{r}] = {A[r].tolist()} is out of range for {len(source)} source "
+                    f"and {len(target)} target landmarks"
+                )
             # Re-index into the filtered sets.
             inv_s = np.full(len(source), -1)
             inv_s[src_idx] = np.arange(len(src_idx))
@@ -276,9 +352,12 @@ class GraffMatcher:
         D_s = self.distance_matrix(src)
         D_t = self.distance_matrix(tgt)
         timings = {"distances": time.perf_counter() - t0}
-        res = match_with_distances(src, tgt, D_s, D_t, cfg, associations, timings)
+        res = match_with_distances(src, tgt, D_s, D_t, cfg, associations, timings, evidence)
         if len(src_idx) != len(source) or len(tgt_idx) != len(target):
-            res.associations = np.stack(
-                [src_idx[res.associations[:, 0]], tgt_idx[res.associations[:, 1]]], 1
-            ).astype(np.int64).reshape(-1, 2)
+            def back(a: np.ndarray) -> np.ndarray:
+                return np.stack([src_idx[a[:, 0]], tgt_idx[a[:, 1]]], 1).astype(np.int64).reshape(-1, 2)
+
+            res.associations = back(res.associations)
+            for h in res.hypotheses:
+                h.associations = back(h.associations)
         return res

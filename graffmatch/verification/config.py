@@ -1,0 +1,49 @@
+"""Settings of the verification layer, with where each default comes from."""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class VerificationConfig(BaseModel):
+    """Hypothesis generation, evidence and decision.
+
+    The decision thresholds and the confidence calibration were chosen on the calibration split
+    of ``bench/verification.py`` (courtyard scans of the first half of the walk, simulated
+    suites' even places, and their negatives) and are reported on the other split.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = Field(True, description="False: the paper's single-clique matcher, valid = well-conditioned")
+    greedy_starts: int = Field(12, ge=0, description="greedy cliques grown from the highest-degree vertices")
+    resolves: int = Field(2, ge=0, description="re-solves with the previous winners' associations removed")
+    resolve_with_clipper: bool = Field(
+        False, description="re-solve with CLIPPER (slow on dense graphs) instead of greedy cliques"
+    )
+    rival_search: bool = Field(
+        True, description="also search the best clique among associations inconsistent with the winner"
+    )
+    max_hypotheses: int = Field(12, ge=1, description="hypotheses registered and scored per match")
+    merge_deg: float = Field(3.0, gt=0, description="hypotheses closer than this rotation merge [deg]")
+    merge_m: float = Field(0.5, gt=0, description="... and this translation [m]")
+    consistent_deg: float = Field(10.0, gt=0, description="an association agrees with a transform within this angle")
+    consistent_m: float = Field(1.0, gt=0, description="... and this offset [m]")
+    # evidence
+    voxel: float = Field(0.3, gt=0, description="voxel size of the support points used as evidence [m]")
+    max_points: int = Field(1500, ge=10, description="most support points per scan used as evidence")
+    inlier_m: float = Field(0.3, gt=0, description="a point is explained within this distance [m]")
+    landmark_deg: float = Field(5.0, gt=0, description="landmark-level evidence: angle tolerance [deg]")
+    landmark_m: float = Field(0.4, gt=0, description="landmark-level evidence: offset tolerance [m]")
+    # decision
+    min_overlap: float = Field(0.25, ge=0, le=1, description="the best hypothesis must explain at least this share")
+    max_rival_ratio: float = Field(
+        0.8, gt=0, le=1, description="ambiguous when a distinct rival scores more than this fraction of the best"
+    )
+    min_landmark_overlap: float = Field(
+        0.3, ge=0, le=1, description="without support points: share of landmarks with a counterpart"
+    )
+    confidence_coef: tuple[float, float, float] = Field(
+        (-6.0, 14.0, 4.0),
+        description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio))",
+    )

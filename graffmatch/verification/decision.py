@@ -1,0 +1,112 @@
+"""Hypotheses with their evidence, and the decision: valid only when the best one is clearly
+right (absolute evidence) and clearly better than its best distinct rival (margin)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graffmatch.geometry.transforms import rotation_error_deg
+from graffmatch.verification.config import VerificationConfig
+
+
+@dataclass
+class Hypothesis:
+    """One candidate solution: its associations, registration and evidence score."""
+
+    T_target_source: NDArray[np.float64]
+    associations: NDArray[np.int64]  # (k, 2) indices into the matched landmark sets
+    origin: str  # clipper | greedy | resolve | rival (+ '+gate' when residual-gated)
+    objective: float  # densest-clique objective of its clique
+    kappa: float
+    degenerate: bool
+    score: float = 0.0  # evidence: share of evidence explained (both directions)
+    score_parts: tuple[float, float] = (0.0, 0.0)
+    info: dict = field(default_factory=dict)
+
+    @property
+    def n_associations(self) -> int:
+        return int(len(self.associations))
+
+    def __repr__(self) -> str:
+        return (f"Hypothesis({self.origin}, associations={self.n_associations}, score={self.score:.3f}, "
+                f"objective={self.objective:.2f}, kappa={self.kappa:.3g})")
+
+    def to_dict(self) -> dict:
+        return {
+            "T_target_source": self.T_target_source.tolist(), "origin": self.origin,
+            "n_associations": self.n_associations, "score": self.score,
+            "score_parts": list(self.score_parts), "objective": self.objective,
+            "kappa": self.kappa if np.isfinite(self.kappa) else None, "degenerate": self.degenerate,
+        }
+
+
+def transform_gap(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> tuple[float, float]:
+    """(rotation difference [deg], translation difference [m]) between two transforms."""
+    return rotation_error_deg(T_a[:3, :3], T_b[:3, :3]), float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
+
+
+def merge_hypotheses(hyps: list[Hypothesis], cfg: VerificationConfig) -> list[Hypothesis]:
+    """Keep, among hypotheses whose transforms agree within merge_deg / merge_m, the best scored
+    (ties: more associations). Returns them best first."""
+    order = sorted(hyps, key=lambda h: (-h.score, h.degenerate, -h.n_associations, -h.objective))
+    kept: list[Hypothesis] = []
+    for h in order:
+        if all(
+            (gap := transform_gap(h.T_target_source, k.T_target_source))[0] > cfg.merge_deg
+            or gap[1] > cfg.merge_m
+            for k in kept
+        ):
+            kept.append(h)
+    return kept
+
+
+@dataclass
+class Verdict:
+    """The decision about a set of merged, scored hypotheses (best first)."""
+
+    best: Hypothesis | None
+    runner_up: Hypothesis | None
+    valid: bool
+    confidence: float
+    margin: float
+    rival_ratio: float
+    problems: list[str]
+
+
+def confidence_of(score: float, rival_ratio: float, cfg: VerificationConfig) -> float:
+    """Calibrated probability that the best hypothesis is right (logistic, see config)."""
+    c0, c1, c2 = cfg.confidence_coef
+    z = c0 + c1 * score + c2 * (1.0 - rival_ratio)
+    return float(1.0 / (1.0 + np.exp(-z)))
+
+
+def decide(hyps: list[Hypothesis], cfg: VerificationConfig, min_score: float) -> Verdict:
+    """Best valid-looking hypothesis vs. its best distinct rival.
+
+    ``hyps`` are merged and sorted best first. Degenerate hypotheses cannot win, but they
+    can be the rival: a poorly constrained alternative that explains the data as well still
+    makes the answer ambiguous.
+    """
+    if not hyps:
+        return Verdict(None, None, False, 0.0, 0.0, 1.0, ["no hypothesis could be registered"])
+    usable = [h for h in hyps if not h.degenerate]
+    best = usable[0] if usable else hyps[0]
+    rivals = [h for h in hyps if h is not best]
+    runner = rivals[0] if rivals else None
+    ratio = 0.0 if runner is None or best.score <= 0 else min(runner.score / best.score, 1.0)
+    problems: list[str] = []
+    if best.degenerate:
+        problems.append(f"degenerate geometry (kappa={best.kappa:.3g})")
+    if best.score < min_score:
+        problems.append(f"overlap {best.score:.2f} < {min_score:.2f}")
+    if runner is not None and ratio > cfg.max_rival_ratio:
+        rot, tr = transform_gap(best.T_target_source, runner.T_target_source)
+        problems.append(
+            f"ambiguous: a {rot:.0f} deg / {tr:.1f} m alternative ({runner.origin}, "
+            f"{runner.n_associations} associations) scores {ratio:.2f} of the best"
+        )
+    conf = 0.0 if best.degenerate else confidence_of(best.score, ratio, cfg)
+    return Verdict(best, runner, not problems, conf, 1.0 - ratio, ratio, problems)

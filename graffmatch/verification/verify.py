@@ -1,0 +1,178 @@
+"""From one consistency graph to a verified answer: hypotheses -> batched registration ->
+evidence -> decision. The matcher calls :func:`verify_graph` after the solver."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from graffmatch.association.clipper import ClipperConfig
+from graffmatch.association.cliques import clique_objective
+from graffmatch.errors import DegenerateGeometryError
+from graffmatch.geometry.landmarks import LandmarkSet
+from graffmatch.registration.closed_form import register_batch
+from graffmatch.verification.config import VerificationConfig
+from graffmatch.verification.decision import (
+    Hypothesis,
+    Verdict,
+    decide,
+    merge_hypotheses,
+    transform_gap,
+)
+from graffmatch.verification.evidence import (
+    SupportCloud,
+    landmark_overlap,
+    point_overlap,
+    support_cloud,
+)
+from graffmatch.verification.hypotheses import (
+    Candidate,
+    candidate_cliques,
+    consistent_with,
+    reassociate,
+    rival_cliques,
+)
+
+
+@dataclass
+class Evidence:
+    """What hypotheses are scored against: support clouds of both scans, or none."""
+
+    source: SupportCloud | None
+    target: SupportCloud | None
+
+    @property
+    def has_points(self) -> bool:
+        return self.source is not None and self.target is not None
+
+
+def evidence_for(source: LandmarkSet, target: LandmarkSet, cfg: VerificationConfig) -> Evidence:
+    return Evidence(support_cloud(source, cfg.voxel, cfg.max_points),
+                    support_cloud(target, cfg.voxel, cfg.max_points))
+
+
+def _register(
+    source: LandmarkSet, target: LandmarkSet, assoc: NDArray[np.int64], W: sp.csr_matrix,
+    cands: list[Candidate], kappa_max: float, gate: tuple[float, float] | None, min_assoc: int,
+) -> list[Hypothesis]:
+    """Register candidates in one batch; with ``gate`` also their residual-gated variants."""
+    cands = [c for c in cands if len(c.vertices) >= 2]
+    if not cands:
+        return []
+    groups = np.concatenate([np.full(len(c.vertices), i) for i, c in enumerate(cands)])
+    verts = np.concatenate([c.vertices for c in cands])
+    try:
+        b = register_batch(source, target, assoc[verts], groups, None, kappa_max, len(cands))
+    except DegenerateGeometryError:
+        return []
+    hyps = []
+    bounds = np.r_[0, np.cumsum([len(c.vertices) for c in cands])]
+    gated: list[Candidate] = []
+    for i, c in enumerate(cands):
+        hyps.append(Hypothesis(
+            b.T_target_source[i], assoc[c.vertices], c.origin, clique_objective(W, c.vertices),
+            float(b.kappa[i]), bool(b.degenerate[i]),
+        ))
+        if gate is not None:
+            sl = slice(bounds[i], bounds[i + 1])
+            keep = (b.offset_residuals[sl] <= gate[0]) & (b.angle_residuals_deg[sl] <= gate[1])
+            if min_assoc <= keep.sum() < len(c.vertices):
+                gated.append(Candidate(c.vertices[keep], c.origin + "+gate"))
+    if gated:
+        hyps += _register(source, target, assoc, W, gated, kappa_max, None, min_assoc)
+    return hyps
+
+
+def _refine(best: Hypothesis, source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64],
+            kappa_max: float, gate: tuple[float, float], min_associations: int) -> None:
+    """Re-associate under the winner's transform (all putative associations within the residual
+    gate, one-to-one) and re-register: more correspondences, a more accurate transform. Kept
+    only when well-conditioned and close to the verified transform."""
+    A = reassociate(source, target, associations, best.T_target_source, gate[1], gate[0])
+    if len(A) < max(min_associations, best.n_associations):
+        return
+    try:
+        b = register_batch(source, target, A, None, None, kappa_max, 1)
+    except DegenerateGeometryError:
+        return
+    if b.degenerate[0]:
+        return
+    rot, tr = transform_gap(best.T_target_source, b.T_target_source[0])
+    if rot <= 2 * gate[1] and tr <= 2 * gate[0]:
+        best.info["clique_associations"] = best.n_associations
+        best.T_target_source = b.T_target_source[0]
+        best.associations = A
+        best.kappa = float(b.kappa[0])
+
+
+def score_hypotheses(
+    hyps: list[Hypothesis], source: LandmarkSet, target: LandmarkSet, ev: Evidence,
+    cfg: VerificationConfig,
+) -> None:
+    """Fill ``score``: mean share of evidence explained in both directions."""
+    for h in hyps:
+        if ev.has_points:
+            parts = point_overlap(ev.source, ev.target, h.T_target_source, cfg.inlier_m)  # type: ignore[arg-type]
+        else:
+            parts = landmark_overlap(source, target, h.T_target_source, cfg.landmark_deg, cfg.landmark_m)
+        h.score_parts = parts
+        h.score = 0.5 * (parts[0] + parts[1])
+
+
+def verify_graph(
+    source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64], W: sp.csr_matrix,
+    winner: NDArray[np.int64], cfg: VerificationConfig, solver: ClipperConfig, kappa_max: float,
+    gate: tuple[float, float] | None, min_associations: int, evidence: Evidence | None = None,
+    timings: dict[str, float] | None = None,
+) -> tuple[Verdict, list[Hypothesis]]:
+    """Hypotheses of one graph, registered, scored and decided. Indices refer to source/target.
+
+    ``timings`` (optional) receives 'hypotheses', 'registration' and 'evidence' [s]."""
+    tm = timings if timings is not None else {}
+    t0 = time.perf_counter()
+    cands = candidate_cliques(W, winner, cfg, solver)
+    t1 = time.perf_counter()
+    hyps = _register(source, target, associations, W, cands, kappa_max, gate, min_associations)
+    t2 = time.perf_counter()
+    tm["hypotheses"] = t1 - t0
+    tm["registration"] = t2 - t1
+    if cfg.rival_search and hyps:
+        usable = [h for h in hyps if not h.degenerate] or hyps
+        lead = max(usable, key=lambda h: (h.objective, h.n_associations))
+        ok = consistent_with(source, target, associations, lead.T_target_source,
+                             cfg.consistent_deg, cfg.consistent_m)
+        t3 = time.perf_counter()
+        rivals = rival_cliques(W, ok, max(2, cfg.greedy_starts // 2))
+        t4 = time.perf_counter()
+        hyps += _register(source, target, associations, W, rivals, kappa_max, gate, min_associations)
+        tm["hypotheses"] += t4 - t3
+        tm["registration"] += time.perf_counter() - t4
+    t5 = time.perf_counter()
+    # Score the most promising ones: best objective first, always including each origin's best.
+    hyps.sort(key=lambda h: (-h.objective, -h.n_associations))
+    picked: list[Hypothesis] = []
+    seen_origin: set[str] = set()
+    for h in hyps:
+        if h.origin not in seen_origin:
+            picked.append(h)
+            seen_origin.add(h.origin)
+    for h in hyps:
+        if len(picked) >= cfg.max_hypotheses:
+            break
+        if all(h is not p for p in picked):
+            picked.append(h)
+    ev = evidence if evidence is not None else evidence_for(source, target, cfg)
+    score_hypotheses(picked, source, target, ev, cfg)
+    merged = merge_hypotheses(picked, cfg)
+    min_score = cfg.min_overlap if ev.has_points else cfg.min_landmark_overlap
+    verdict = decide(merged, cfg, min_score)
+    tm["evidence"] = time.perf_counter() - t5
+    if verdict.best is not None and gate is not None and not verdict.best.degenerate:
+        t6 = time.perf_counter()
+        _refine(verdict.best, source, target, associations, kappa_max, gate, min_associations)
+        tm["registration"] += time.perf_counter() - t6
+    return verdict, merged
