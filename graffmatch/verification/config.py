@@ -17,6 +17,9 @@ class VerificationConfig(BaseModel):
 
     enabled: bool = Field(True, description="False: the paper's single-clique matcher, valid = well-conditioned")
     greedy_starts: int = Field(12, ge=0, description="greedy cliques grown from the highest-degree vertices")
+    greedy_all_below: int = Field(
+        300, ge=0, description="graphs with at most this many associations grow a greedy clique from every vertex"
+    )
     resolves: int = Field(2, ge=0, description="re-solves with the previous winners' associations removed")
     resolve_with_clipper: bool = Field(
         False, description="re-solve with CLIPPER (slow on dense graphs) instead of greedy cliques"
@@ -24,9 +27,13 @@ class VerificationConfig(BaseModel):
     rival_search: bool = Field(
         True, description="also search the best clique among associations inconsistent with the winner"
     )
-    max_hypotheses: int = Field(12, ge=1, description="hypotheses registered and scored per match")
+    max_hypotheses: int = Field(8, ge=1, description="distinct hypotheses scored exactly (after a fast first pass over all)")
     merge_deg: float = Field(3.0, gt=0, description="hypotheses closer than this rotation merge [deg]")
     merge_m: float = Field(0.5, gt=0, description="... and this translation [m]")
+    rival_deg: float = Field(
+        5.0, gt=0, description="a rival must differ from the best by more than this rotation [deg] ..."
+    )
+    rival_m: float = Field(1.0, gt=0, description="... or this translation [m] (else it is the same answer)")
     consistent_deg: float = Field(10.0, gt=0, description="an association agrees with a transform within this angle")
     consistent_m: float = Field(1.0, gt=0, description="... and this offset [m]")
     # evidence

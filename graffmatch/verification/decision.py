@@ -50,17 +50,22 @@ def transform_gap(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> tuple[f
 
 def merge_hypotheses(hyps: list[Hypothesis], cfg: VerificationConfig) -> list[Hypothesis]:
     """Keep, among hypotheses whose transforms agree within merge_deg / merge_m, the best scored
-    (ties: more associations). Returns them best first."""
-    order = sorted(hyps, key=lambda h: (-h.score, h.degenerate, -h.n_associations, -h.objective))
-    kept: list[Hypothesis] = []
-    for h in order:
-        if all(
-            (gap := transform_gap(h.T_target_source, k.T_target_source))[0] > cfg.merge_deg
-            or gap[1] > cfg.merge_m
-            for k in kept
-        ):
-            kept.append(h)
-    return kept
+    (ties: well-conditioned, more associations). Returns them best first. Vectorised gaps."""
+    if not hyps:
+        return []
+    order = sorted(range(len(hyps)), key=lambda i: (-hyps[i].score, hyps[i].degenerate,
+                                                    -hyps[i].n_associations, -hyps[i].objective))
+    Ts = np.stack([hyps[i].T_target_source for i in order])
+    R, t = Ts[:, :3, :3], Ts[:, :3, 3]
+    tr = np.einsum("aij,bij->ab", R, R)  # trace(R_a^T R_b)
+    rot = np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+    dist = np.linalg.norm(t[:, None] - t[None], axis=2)
+    close = (rot <= cfg.merge_deg) & (dist <= cfg.merge_m)
+    kept: list[int] = []
+    for a in range(len(order)):
+        if not kept or not close[a, kept].any():
+            kept.append(a)
+    return [hyps[order[a]] for a in kept]
 
 
 @dataclass
@@ -74,6 +79,12 @@ class Verdict:
     margin: float
     rival_ratio: float
     problems: list[str]
+
+
+def _distinct(h: Hypothesis, best: Hypothesis, cfg: VerificationConfig) -> bool:
+    """A rival differs by more than what counts as the same answer (rival_deg / rival_m)."""
+    rot, tr = transform_gap(h.T_target_source, best.T_target_source)
+    return rot > cfg.rival_deg or tr > cfg.rival_m
 
 
 def confidence_of(score: float, rival_ratio: float, cfg: VerificationConfig) -> float:
@@ -94,7 +105,7 @@ def decide(hyps: list[Hypothesis], cfg: VerificationConfig, min_score: float) ->
         return Verdict(None, None, False, 0.0, 0.0, 1.0, ["no hypothesis could be registered"])
     usable = [h for h in hyps if not h.degenerate]
     best = usable[0] if usable else hyps[0]
-    rivals = [h for h in hyps if h is not best]
+    rivals = [h for h in hyps if h is not best and _distinct(h, best, cfg)]
     runner = rivals[0] if rivals else None
     ratio = 0.0 if runner is None or best.score <= 0 else min(runner.score / best.score, 1.0)
     problems: list[str] = []

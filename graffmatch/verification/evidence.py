@@ -18,15 +18,63 @@ from scipy.spatial import cKDTree
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 
 
+_KEY_BITS = 20
+_KEY_OFF = 1 << (_KEY_BITS - 1)
+
+
+def _voxel_keys(points: NDArray[np.float64], voxel: float) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """int64 key of each point's voxel, and whether it is inside the keyed range (+-2^19 voxels)."""
+    ijk = np.floor(points / voxel)
+    inside = np.all(np.abs(ijk) < _KEY_OFF - 2, axis=-1)
+    ijk = np.where(inside[..., None], ijk, 0).astype(np.int64) + _KEY_OFF
+    return (ijk[..., 0] << (2 * _KEY_BITS)) | (ijk[..., 1] << _KEY_BITS) | ijk[..., 2], inside
+
+
 @dataclass
 class SupportCloud:
-    """Voxel-downsampled non-ground evidence points of one scan, with their KD-tree."""
+    """Voxel-downsampled non-ground evidence points of one scan, with their KD-tree and a
+    dilated voxel occupancy (sorted keys) that scores many hypotheses in one lookup."""
 
     points: NDArray[np.float64]
     tree: cKDTree
+    occupancy: NDArray[np.int64] | None = None
+    occupancy_voxel: float = 0.0
 
     def __len__(self) -> int:
         return len(self.points)
+
+    def occupied(self, voxel: float) -> NDArray[np.int64]:
+        """Sorted keys of the voxels that hold a point or touch one by a face (built once)."""
+        if self.occupancy is None or self.occupancy_voxel != voxel:
+            off = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
+            base = np.floor(self.points / voxel)
+            pts = ((base[:, None, :] + off[None]) + 0.5) * voxel
+            keys, inside = _voxel_keys(pts.reshape(-1, 3), voxel)
+            self.occupancy = np.unique(keys[inside])
+            self.occupancy_voxel = voxel
+        return self.occupancy
+
+
+def occupancy_overlap(
+    source: SupportCloud, target: SupportCloud, Ts: NDArray[np.float64], voxel: float, n_points: int = 256,
+) -> NDArray[np.float64]:
+    """(H, 2) approximate shares explained in both directions for H transforms at once: a point
+    counts when it falls in a voxel next to an occupied one (distance up to ~2 voxels)."""
+    out = np.zeros((len(Ts), 2))
+    for k, (a, b, T) in enumerate(((source, target, Ts), (target, source, None))):
+        P = a.points[np.linspace(0, len(a) - 1, min(n_points, len(a))).astype(np.int64)]
+        if T is None:  # target -> source: inverse transforms
+            R = np.swapaxes(Ts[:, :3, :3], 1, 2)
+            t = -np.einsum("hij,hj->hi", R, Ts[:, :3, 3])
+        else:
+            R, t = T[:, :3, :3], T[:, :3, 3]
+        q = np.einsum("hij,nj->hni", R, P) + t[:, None, :]
+        keys, inside = _voxel_keys(q, voxel)
+        occ = b.occupied(voxel)
+        pos = np.searchsorted(occ, keys)
+        hit = (occ[np.minimum(pos, len(occ) - 1)] == keys) & inside
+        out[:, k] = hit.mean(axis=1)
+    return out
 
 
 def voxel_downsample(points: NDArray, voxel: float, max_points: int) -> NDArray[np.float64]:
@@ -97,33 +145,41 @@ def point_overlap(
 def landmark_overlap(
     source: LandmarkSet, target: LandmarkSet, T_target_source: NDArray[np.float64],
     max_deg: float = 5.0, max_m: float = 0.4,
-) -> tuple[float, float]:
-    """Share of landmarks (ground plane excluded) with a same-type counterpart under T, both ways.
+) -> NDArray[np.float64]:
+    """Share of landmarks (ground plane excluded) with a same-type counterpart, both ways.
 
+    ``T_target_source`` is one (4, 4) transform -> (2,), or H stacked (H, 4, 4) -> (H, 2).
     Lines count when directions agree within ``max_deg`` and the axes pass within ``max_m``;
     planes when normals agree, the planes are within ``max_m`` and the anchors are closer than
-    the larger support's half diagonal plus 2 m (a wall does not explain a wall 50 m along it).
+    the supports' half sizes plus 2 m (a wall does not explain a wall 50 m along it).
     """
-    src = _without_ground(source).transform(T_target_source)
+    Ts = np.asarray(T_target_source, dtype=float)
+    single = Ts.ndim == 2
+    Ts = Ts[None] if single else Ts
+    src = _without_ground(source)
     tgt = _without_ground(target)
     if len(src) == 0 or len(tgt) == 0:
-        return 0.0, 0.0
-    cos_max = np.cos(np.radians(max_deg))
-    same = src.types[:, None] == tgt.types[None, :]
-    ds, dt = src.directions, tgt.directions
-    cosang = np.abs(ds @ dt.T)
-    diff = tgt.anchors[None, :, :] - src.anchors[:, None, :]  # (ns, nt, 3)
-    along_t = np.einsum("stk,tk->st", diff, dt)
-    is_plane = (tgt.types == LandmarkType.PLANE)[None, :]
-    is_line = (tgt.types == LandmarkType.LINE)[None, :]
-    dist_plane = np.abs(along_t)
-    dist_line = np.linalg.norm(diff - along_t[..., None] * dt[None], axis=2)
-    dist_point = np.linalg.norm(diff, axis=2)
-    off = np.where(is_plane, dist_plane, np.where(is_line, dist_line, dist_point))
-    reach = _reach(src)[:, None] + _reach(tgt)[None, :] + 2.0
-    near = np.where(is_plane | is_line, np.linalg.norm(diff, axis=2) <= reach, True)
-    ok = same & (np.where(src.types[:, None] > 0, cosang >= cos_max, True)) & (off <= max_m) & near
-    return float(ok.any(axis=1).mean()), float(ok.any(axis=0).mean())
+        out = np.zeros((len(Ts), 2))
+        return out[0] if single else out
+    R, t = Ts[:, :3, :3], Ts[:, :3, 3]
+    ds = np.einsum("hij,nj->hni", R, src.directions)  # (H, ns, 3)
+    bs = np.einsum("hij,nj->hni", R, src.anchors) + t[:, None, :]
+    dt, bt = tgt.directions, tgt.anchors
+    same = (src.types[:, None] == tgt.types[None, :])[None]
+    cosang = np.abs(np.einsum("hsi,ti->hst", ds, dt))
+    diff = bt[None, None, :, :] - bs[:, :, None, :]  # (H, ns, nt, 3)
+    along_t = np.einsum("hsti,ti->hst", diff, dt)
+    is_plane = (tgt.types == LandmarkType.PLANE)[None, None, :]
+    is_line = (tgt.types == LandmarkType.LINE)[None, None, :]
+    dist = np.linalg.norm(diff, axis=3)
+    dist_line = np.sqrt(np.maximum(dist**2 - along_t**2, 0.0))
+    off = np.where(is_plane, np.abs(along_t), np.where(is_line, dist_line, dist))
+    reach = (_reach(src)[:, None] + _reach(tgt)[None, :] + 2.0)[None]
+    near = np.where(is_plane | is_line, dist <= reach, True)
+    directional = (src.types[:, None] > 0)[None]
+    ok = same & np.where(directional, cosang >= np.cos(np.radians(max_deg)), True) & (off <= max_m) & near
+    out = np.stack([ok.any(axis=2).mean(axis=1), ok.any(axis=1).mean(axis=1)], axis=1)
+    return out[0] if single else out
 
 
 def _without_ground(ls: LandmarkSet) -> LandmarkSet:

@@ -94,7 +94,9 @@ def candidate_cliques(
         return out
     wdeg = np.asarray(W.sum(axis=1)).ravel()
     order = np.argsort(-wdeg, kind="stable")
-    if cfg.greedy_starts:
+    if m <= cfg.greedy_all_below:  # small graphs: a greedy clique from every vertex
+        out += [Candidate(c, "greedy") for c in greedy_cliques(W, order)]
+    elif cfg.greedy_starts:
         in_winner = np.zeros(m, bool)
         in_winner[winner] = True
         # half the starts among the best-connected vertices, half outside the winner

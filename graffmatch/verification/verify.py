@@ -26,6 +26,7 @@ from graffmatch.verification.decision import (
 from graffmatch.verification.evidence import (
     SupportCloud,
     landmark_overlap,
+    occupancy_overlap,
     point_overlap,
     support_cloud,
 )
@@ -57,9 +58,9 @@ def evidence_for(source: LandmarkSet, target: LandmarkSet, cfg: VerificationConf
 
 def _register(
     source: LandmarkSet, target: LandmarkSet, assoc: NDArray[np.int64], W: sp.csr_matrix,
-    cands: list[Candidate], kappa_max: float, gate: tuple[float, float] | None, min_assoc: int,
+    cands: list[Candidate], kappa_max: float,
 ) -> list[Hypothesis]:
-    """Register candidates in one batch; with ``gate`` also their residual-gated variants."""
+    """Register candidates (cliques of >= 2 associations) in one batch."""
     cands = [c for c in cands if len(c.vertices) >= 2]
     if not cands:
         return []
@@ -69,22 +70,39 @@ def _register(
         b = register_batch(source, target, assoc[verts], groups, None, kappa_max, len(cands))
     except DegenerateGeometryError:
         return []
-    hyps = []
     bounds = np.r_[0, np.cumsum([len(c.vertices) for c in cands])]
-    gated: list[Candidate] = []
+    hyps = []
     for i, c in enumerate(cands):
-        hyps.append(Hypothesis(
-            b.T_target_source[i], assoc[c.vertices], c.origin, clique_objective(W, c.vertices),
-            float(b.kappa[i]), bool(b.degenerate[i]),
-        ))
-        if gate is not None:
-            sl = slice(bounds[i], bounds[i + 1])
-            keep = (b.offset_residuals[sl] <= gate[0]) & (b.angle_residuals_deg[sl] <= gate[1])
-            if min_assoc <= keep.sum() < len(c.vertices):
-                gated.append(Candidate(c.vertices[keep], c.origin + "+gate"))
-    if gated:
-        hyps += _register(source, target, assoc, W, gated, kappa_max, None, min_assoc)
+        h = Hypothesis(b.T_target_source[i], assoc[c.vertices], c.origin, clique_objective(W, c.vertices),
+                       float(b.kappa[i]), bool(b.degenerate[i]))
+        sl = slice(bounds[i], bounds[i + 1])
+        h.info["vertices"] = c.vertices
+        h.info["residuals"] = (b.offset_residuals[sl], b.angle_residuals_deg[sl])
+        hyps.append(h)
     return hyps
+
+
+def _gated(hyps: list[Hypothesis], gate: tuple[float, float], min_assoc: int) -> list[Candidate]:
+    """Residual-gated variants: drop associations off by more than the gate (the clique may hold
+    a few wrong ones). The ungated hypothesis stays a candidate, so the gate can never remove
+    the constraints that fix the rotation without verification noticing."""
+    out = []
+    for h in hyps:
+        off, ang = h.info["residuals"]
+        keep = (off <= gate[0]) & (ang <= gate[1])
+        if min_assoc <= keep.sum() < len(keep):
+            out.append(Candidate(h.info["vertices"][keep], h.origin + "+gate"))
+    return out
+
+
+def _premerge(hyps: list[Hypothesis], cfg: VerificationConfig) -> list[Hypothesis]:
+    """Collapse near-identical transforms before scoring, keeping the densest clique of each."""
+    for h in hyps:
+        h.score = h.objective  # ordering key only; real scores come next
+    out = merge_hypotheses(hyps, cfg)
+    for h in out:
+        h.score = 0.0
+    return out
 
 
 def _refine(best: Hypothesis, source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64],
@@ -111,16 +129,22 @@ def _refine(best: Hypothesis, source: LandmarkSet, target: LandmarkSet, associat
 
 def score_hypotheses(
     hyps: list[Hypothesis], source: LandmarkSet, target: LandmarkSet, ev: Evidence,
-    cfg: VerificationConfig,
+    cfg: VerificationConfig, exact: bool,
 ) -> None:
-    """Fill ``score``: mean share of evidence explained in both directions."""
-    for h in hyps:
-        if ev.has_points:
-            parts = point_overlap(ev.source, ev.target, h.T_target_source, cfg.inlier_m)  # type: ignore[arg-type]
-        else:
-            parts = landmark_overlap(source, target, h.T_target_source, cfg.landmark_deg, cfg.landmark_m)
-        h.score_parts = parts
-        h.score = 0.5 * (parts[0] + parts[1])
+    """Fill ``score``: mean share of evidence explained in both directions. ``exact``: KD-tree
+    distances; otherwise one vectorised voxel lookup for all hypotheses (stage 1)."""
+    if not hyps:
+        return
+    Ts = np.stack([h.T_target_source for h in hyps])
+    if not ev.has_points:
+        parts = landmark_overlap(source, target, Ts, cfg.landmark_deg, cfg.landmark_m)
+    elif exact:
+        parts = np.array([point_overlap(ev.source, ev.target, T, cfg.inlier_m) for T in Ts])  # type: ignore[arg-type]
+    else:
+        parts = occupancy_overlap(ev.source, ev.target, Ts, cfg.inlier_m)  # type: ignore[arg-type]
+    for h, p in zip(hyps, parts, strict=True):
+        h.score_parts = (float(p[0]), float(p[1]))
+        h.score = 0.5 * (h.score_parts[0] + h.score_parts[1])
 
 
 def verify_graph(
@@ -136,7 +160,7 @@ def verify_graph(
     t0 = time.perf_counter()
     cands = candidate_cliques(W, winner, cfg, solver)
     t1 = time.perf_counter()
-    hyps = _register(source, target, associations, W, cands, kappa_max, gate, min_associations)
+    hyps = _register(source, target, associations, W, cands, kappa_max)
     t2 = time.perf_counter()
     tm["hypotheses"] = t1 - t0
     tm["registration"] = t2 - t1
@@ -148,26 +172,21 @@ def verify_graph(
         t3 = time.perf_counter()
         rivals = rival_cliques(W, ok, max(2, cfg.greedy_starts // 2))
         t4 = time.perf_counter()
-        hyps += _register(source, target, associations, W, rivals, kappa_max, gate, min_associations)
+        hyps += _register(source, target, associations, W, rivals, kappa_max)
         tm["hypotheses"] += t4 - t3
         tm["registration"] += time.perf_counter() - t4
+    hyps = _premerge(hyps, cfg)
+    if gate is not None:
+        t4 = time.perf_counter()
+        hyps += _register(source, target, associations, W, _gated(hyps, gate, min_associations), kappa_max)
+        tm["registration"] += time.perf_counter() - t4
     t5 = time.perf_counter()
-    # Score the most promising ones: best objective first, always including each origin's best.
-    hyps.sort(key=lambda h: (-h.objective, -h.n_associations))
-    picked: list[Hypothesis] = []
-    seen_origin: set[str] = set()
-    for h in hyps:
-        if h.origin not in seen_origin:
-            picked.append(h)
-            seen_origin.add(h.origin)
-    for h in hyps:
-        if len(picked) >= cfg.max_hypotheses:
-            break
-        if all(h is not p for p in picked):
-            picked.append(h)
     ev = evidence if evidence is not None else evidence_for(source, target, cfg)
-    score_hypotheses(picked, source, target, ev, cfg)
-    merged = merge_hypotheses(picked, cfg)
+    score_hypotheses(hyps, source, target, ev, cfg, exact=False)
+    merged = merge_hypotheses(hyps, cfg)[: cfg.max_hypotheses]
+    if ev.has_points:  # stage 2: exact distances for the few that matter
+        score_hypotheses(merged, source, target, ev, cfg, exact=True)
+        merged = merge_hypotheses(merged, cfg)
     min_score = cfg.min_overlap if ev.has_points else cfg.min_landmark_overlap
     verdict = decide(merged, cfg, min_score)
     tm["evidence"] = time.perf_counter() - t5

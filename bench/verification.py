@@ -1,0 +1,302 @@
+"""Trust of ``valid``: precision, recall and false positives of the verified matcher, with the
+decision thresholds chosen on a calibration split and reported on a separate test split.
+
+Data (all from one command, cached under --out):
+* ``balm_courtyard`` (real): pairs 3-16 m apart. Calibration split: both scans in the first
+  half of the walk; test split: both in the second half.
+* ``kitti00_first6`` (real): every pair of the six scans (test only).
+* simulated drives (downtown, suburban): pairs 3-16 m apart (positives) and > 60 m apart
+  (negatives), split by the first / second half of each drive.
+* cross-dataset negatives: courtyard x KITTI, simulated x real, simulated style x style,
+  split by pair parity.
+
+Each pair is matched once with a permissive decision (every threshold open) and the raw
+evidence is recorded (best score, rival ratio, structural problems, the transform); any
+threshold's outcome is then computed offline. A result is *correct* when it is within 5 deg and
+1 m of the ground-truth relative pose. Thresholds: the largest recall on the calibration split
+with precision >= 99.5 % and at most 0.5 % valid negatives; the confidence is a logistic fit on
+the calibration split. Prints the tables and writes JSON (``--json``).
+
+    python bench/verification.py --out /tmp/gm-verify --json bench/results/verification.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+
+from graffmatch.datasets.folder import KittiFolder
+from graffmatch.evaluation.suites import SIM_EXTRACTORS, shared_data_root, suite_config
+from graffmatch.geometry.landmarks import LandmarkSet
+from graffmatch.geometry.transforms import invert, transform_errors
+from graffmatch.lidar.extractor import LandmarkExtractor, LandmarkExtractorConfig
+from graffmatch.matcher import GraffMatchConfig, GraffMatcher
+from graffmatch.verification.config import VerificationConfig
+
+ROT_OK, TRANS_OK = 5.0, 1.0
+
+
+def extract_all(ds, cfg: LandmarkExtractorConfig, cache: Path, name: str) -> list[LandmarkSet]:
+    cache.mkdir(parents=True, exist_ok=True)
+    ex = LandmarkExtractor(cfg)
+    out = []
+    for i in range(len(ds)):
+        f = cache / f"{name}_{i:06d}.npz"
+        if f.exists():
+            out.append(LandmarkSet.load(f))
+            continue
+        scan = ds[i]
+        ls = ex.extract(scan.points, None)
+        ls.save(f, include_points=True)
+        out.append(ls)
+    return out
+
+
+def load_sources(out: Path, sim_scans: int) -> dict[str, dict]:
+    root = shared_data_root()
+    src: dict[str, dict] = {}
+    court = KittiFolder(root / "balm_courtyard")
+    src["courtyard"] = {
+        "lms": extract_all(court, suite_config("balm_courtyard").extractor, out / "cache", "courtyard"),
+        "poses": court.poses,
+    }
+    kitti = KittiFolder(root / "kitti00_first6")
+    src["kitti"] = {"lms": extract_all(kitti, LandmarkExtractorConfig(), out / "cache", "kitti"),
+                    "poses": kitti.poses}
+    if sim_scans > 0:
+        from graffmatch.datasets.simulator import simulate_dataset
+
+        for style, suite in (("downtown", "sim-downtown"), ("suburban", "sim-suburban")):
+            raw = simulate_dataset(out / f"sim-{style}", style=style, seed=7, n_scans=sim_scans, reuse=True)
+            ds = KittiFolder(raw)
+            cfg = LandmarkExtractorConfig.model_validate(SIM_EXTRACTORS.get(suite, {}))
+            src[f"sim-{style}"] = {"lms": extract_all(ds, cfg, out / "cache", f"sim-{style}"),
+                                   "poses": ds.poses}
+    return src
+
+
+def make_pairs(src: dict[str, dict], max_per: int, seed: int = 0) -> list[dict]:
+    """Positive and negative pairs with their split ('cal' or 'test')."""
+    rng = np.random.default_rng(seed)
+    pairs: list[dict] = []
+
+    def take(lst: list, k: int) -> list:
+        if len(lst) <= k:
+            return lst
+        return [lst[i] for i in np.sort(rng.choice(len(lst), k, replace=False))]
+
+    for name, s in src.items():
+        P = s["poses"]
+        n = len(P)
+        pos = P[:, :3, 3]
+        D = np.linalg.norm(pos[:, None] - pos[None], axis=2)
+        half = n // 2
+        if name == "kitti":
+            for i in range(n):
+                for j in range(i + 1, n):
+                    pairs.append(dict(ds=name, i=i, j=j, ds2=name, split="test", positive=True))
+            continue
+        for split, lo, hi in (("cal", 0, half), ("test", half, n)):
+            cand = [(i, j) for i in range(lo, hi) for j in range(i + 1, hi) if 3.0 <= D[i, j] <= 16.0]
+            for i, j in take(cand, max_per):
+                pairs.append(dict(ds=name, i=i, j=j, ds2=name, split=split, positive=True))
+            far = [(i, j) for i in range(lo, hi) for j in range(i + 1, hi) if D[i, j] > 60.0]
+            for i, j in take(far, max_per // 2):
+                pairs.append(dict(ds=name, i=i, j=j, ds2=name, split=split, positive=False))
+    names = list(src)
+    for a in range(len(names)):
+        for b in range(a + 1, len(names)):
+            na, nb_ = names[a], names[b]
+            cross = [(i, j) for i in range(len(src[na]["lms"])) for j in range(len(src[nb_]["lms"]))]
+            for k, (i, j) in enumerate(take(cross, max_per // 2)):
+                pairs.append(dict(ds=na, i=i, j=j, ds2=nb_, split="cal" if k % 2 == 0 else "test",
+                                  positive=False))
+    return pairs
+
+
+def run_pairs(src: dict, pairs: list[dict], cfg: GraffMatchConfig) -> list[dict]:
+    matcher = GraffMatcher(cfg)
+    rows = []
+    t_start = time.perf_counter()
+    for n, p in enumerate(pairs):
+        T = src[p["ds"]]["lms"][p["i"]]  # target: scan i of ds; source: scan j of ds2
+        S = src[p["ds2"]]["lms"][p["j"]]
+        row = dict(p)
+        if len(S) < 2 or len(T) < 2:
+            row.update(structural=False, score=0.0, ratio=1.0, correct=False, t=0.0, message="too few landmarks")
+            rows.append(row)
+            continue
+        t0 = time.perf_counter()
+        r = matcher.match(S, T)
+        row["t"] = time.perf_counter() - t0
+        row["score"] = float(r.overlap)
+        row["ratio"] = float(r.info.get("rival_ratio", 1.0)) if r.runner_up is not None else 0.0
+        row["structural"] = bool(r.T_target_source is not None and r.valid)
+        row["message"] = r.message
+        row["n_hyp"] = len(r.hypotheses)
+        row["correct"] = False
+        if p["positive"] and r.T_target_source is not None:
+            Pi, Pj = src[p["ds"]]["poses"][p["i"]], src[p["ds"]]["poses"][p["j"]]
+            T_gt = invert(Pi) @ Pj  # maps scan j (source) into scan i (target)
+            rot, tr = transform_errors(r.T_target_source, T_gt)
+            row.update(rot=rot, tr=tr, correct=bool(rot <= ROT_OK and tr <= TRANS_OK))
+            if r.runner_up is not None:
+                rr, rt = transform_errors(r.runner_up.T_target_source, T_gt)
+                row["runner_up_correct"] = bool(rr <= ROT_OK and rt <= TRANS_OK)
+        rows.append(row)
+        if (n + 1) % 100 == 0:
+            el = time.perf_counter() - t_start
+            print(f"  {n + 1}/{len(pairs)} pairs, {el:.0f} s", flush=True)
+    return rows
+
+
+def decide(rows: list[dict], min_overlap: float, max_ratio: float) -> np.ndarray:
+    s = np.array([r["score"] for r in rows])
+    q = np.array([r["ratio"] for r in rows])
+    st = np.array([r["structural"] for r in rows])
+    return st & (s >= min_overlap) & (q <= max_ratio)
+
+
+def metrics(rows: list[dict], valid: np.ndarray) -> dict:
+    pos = np.array([r["positive"] for r in rows], bool)
+    cor = np.array([r["correct"] for r in rows], bool)
+    tp = valid & cor
+    n_valid = int(valid.sum())
+    return {
+        "pairs": len(rows), "positives": int(pos.sum()), "negatives": int((~pos).sum()),
+        "valid": n_valid, "valid_correct": int(tp.sum()),
+        "precision": float(tp.sum() / n_valid) if n_valid else float("nan"),
+        "recall": float(tp.sum() / pos.sum()) if pos.sum() else float("nan"),
+        "valid_negatives": int((valid & ~pos).sum()),
+        "fpr_negatives": float((valid & ~pos).sum() / (~pos).sum()) if (~pos).sum() else float("nan"),
+        "oracle_recall": float(cor.sum() / pos.sum()) if pos.sum() else float("nan"),
+    }
+
+
+def auc(score: np.ndarray, label: np.ndarray) -> float:
+    pos, neg = score[label], score[~label]
+    if len(pos) == 0 or len(neg) == 0:
+        return float("nan")
+    order = np.argsort(np.r_[pos, neg], kind="stable")
+    ranks = np.empty(len(order))
+    ranks[order] = np.arange(1, len(order) + 1)
+    return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
+
+
+def choose_thresholds(cal: list[dict]) -> tuple[float, float, dict]:
+    best = None
+    for mo in np.round(np.arange(0.05, 0.71, 0.025), 3):
+        for mr in np.round(np.arange(0.5, 0.96, 0.025), 3):
+            m = metrics(cal, decide(cal, mo, mr))
+            prec = m["precision"] if m["valid"] else 1.0
+            if prec < 0.995 or m["fpr_negatives"] > 0.005:
+                continue
+            key = (m["recall"], -mo, -mr)  # most recall; ties: the stricter thresholds
+            if best is None or key > best[0]:
+                best = (key, float(mo), float(mr), m)
+    if best is None:
+        return 0.7, 0.5, {}
+    return best[1], best[2], best[3]
+
+
+def fit_confidence(cal: list[dict]) -> tuple[float, float, float]:
+    rows = [r for r in cal if r["structural"]]
+    x1 = np.array([r["score"] for r in rows])
+    x2 = 1.0 - np.array([r["ratio"] for r in rows])
+    y = np.array([r["correct"] for r in rows], float)
+
+    def nll(c: np.ndarray) -> float:
+        z = c[0] + c[1] * x1 + c[2] * x2
+        return float(np.sum(np.logaddexp(0, z) - y * z) + 1e-3 * np.sum(c**2))
+
+    res = minimize(nll, np.array([-4.0, 10.0, 4.0]), method="BFGS")
+    return tuple(float(v) for v in res.x)  # type: ignore[return-value]
+
+
+def reliability(rows: list[dict], coef, valid: np.ndarray, bins: int = 5) -> list[dict]:
+    c0, c1, c2 = coef
+    s = np.array([r["score"] for r in rows])
+    q = np.array([r["ratio"] for r in rows])
+    conf = 1 / (1 + np.exp(-(c0 + c1 * s + c2 * (1 - q))))
+    cor = np.array([r["correct"] for r in rows])
+    st = np.array([r["structural"] for r in rows])
+    out = []
+    edges = np.linspace(0, 1, bins + 1)
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        m = st & (conf >= lo) & ((conf < hi) | (hi == 1.0))
+        if m.any():
+            out.append({"bin": f"{lo:.1f}-{hi:.1f}", "n": int(m.sum()), "mean_confidence": float(conf[m].mean()),
+                        "fraction_correct": float(cor[m].mean())})
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="/tmp/gm-verify")
+    ap.add_argument("--sim-scans", type=int, default=120)
+    ap.add_argument("--max-per", type=int, default=150, help="pairs per dataset and split")
+    ap.add_argument("--json", default=None)
+    a = ap.parse_args()
+    out = Path(a.out)
+    t0 = time.perf_counter()
+    src = load_sources(out, a.sim_scans)
+    print(f"landmarks ready in {time.perf_counter() - t0:.0f} s: "
+          + ", ".join(f"{k} {len(v['lms'])}" for k, v in src.items()), flush=True)
+    pairs = make_pairs(src, a.max_per)
+    open_cfg = GraffMatchConfig(verification=VerificationConfig(min_overlap=0.0, max_rival_ratio=1.0,
+                                                                min_landmark_overlap=0.0))
+    rows = run_pairs(src, pairs, open_cfg)
+    cal = [r for r in rows if r["split"] == "cal"]
+    test = [r for r in rows if r["split"] == "test"]
+    mo, mr, cal_m = choose_thresholds(cal)
+    coef = fit_confidence(cal)
+    print(f"\nchosen on the calibration split ({len(cal)} pairs): min_overlap={mo}, max_rival_ratio={mr}; "
+          f"confidence coef={tuple(round(c, 3) for c in coef)}")
+    report: dict = {"thresholds": {"min_overlap": mo, "max_rival_ratio": mr}, "confidence_coef": coef,
+                    "calibration": cal_m, "test": {}, "test_by_dataset": {}}
+    base = VerificationConfig()
+    for label, (o, r_) in {"chosen": (mo, mr), "defaults": (base.min_overlap, base.max_rival_ratio)}.items():
+        v = decide(test, o, r_)
+        report["test"][label] = metrics(test, v)
+    v = decide(test, mo, mr)
+    print(f"\n{'test split':<30}{'pairs':>6}{'pos':>5}{'neg':>5}{'valid':>6}{'prec':>7}{'recall':>7}"
+          f"{'oracle':>7}{'FP neg':>8}")
+    keys = sorted({(r["ds"], r["ds2"]) for r in test})
+    for ds, ds2 in keys:
+        idx = [k for k, r in enumerate(test) if r["ds"] == ds and r["ds2"] == ds2]
+        sub = [test[k] for k in idx]
+        m = metrics(sub, v[idx])
+        name = ds if ds == ds2 else f"{ds} x {ds2}"
+        report["test_by_dataset"][name] = m
+        print(f"{name:<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
+              f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
+    m = report["test"]["chosen"]
+    print(f"{'ALL (test)':<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
+          f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
+    st = np.array([r["structural"] for r in test])
+    lab = np.array([r["correct"] for r in test])
+    sc = np.array([r["score"] for r in test])
+    report["test_auc_overlap"] = auc(sc[st], lab[st])
+    court = np.array([r["ds"] == "courtyard" and r["ds2"] == "courtyard" for r in test])
+    report["test_auc_overlap_courtyard"] = auc(sc[st & court], lab[st & court])
+    report["reliability_test"] = reliability(test, coef, v)
+    times = np.array([r["t"] for r in rows if r.get("t")])
+    report["match_ms"] = {"median": float(np.median(times) * 1e3), "p95": float(np.percentile(times, 95) * 1e3)}
+    print(f"\nAUC of overlap (correct vs wrong, structurally valid, test): {report['test_auc_overlap']:.3f}"
+          f" (courtyard {report['test_auc_overlap_courtyard']:.3f})")
+    print("reliability (test):", report["reliability_test"])
+    print(f"match() with verification: median {report['match_ms']['median']:.1f} ms, "
+          f"p95 {report['match_ms']['p95']:.1f} ms over {len(times)} pairs")
+    if a.json:
+        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.json).write_text(json.dumps({**report, "rows": rows}, indent=1, default=float))
+        print(f"wrote {a.json}")
+
+
+if __name__ == "__main__":
+    main()
