@@ -52,6 +52,13 @@ _EXPORTS: dict[str, str] = {
     "write_points": "graffmatch.lidar.io",
     # pipeline
     "register_scans": "graffmatch.pipeline",
+    "ScanMatcher": "graffmatch.pipeline",
+    "ScanMatcherConfig": "graffmatch.pipeline",
+    "ScanRegistration": "graffmatch.pipeline",
+    "RefinementConfig": "graffmatch.pipeline",
+    # verification
+    "VerificationConfig": "graffmatch.verification.config",
+    "Hypothesis": "graffmatch.verification.decision",
     # datasets
     "open_dataset": "graffmatch.datasets.registry",
     "make_scene_pair": "graffmatch.datasets.landmark_scene",

@@ -1,19 +1,62 @@
-"""Scan-to-scan registration in one call: extract landmarks from both scans, match, register.
+"""One configured scan-to-scan path: ``ScanMatcher(config).register(source, target)``.
 
-This is the layer above the matcher and the LiDAR front end; the evaluation and the CLI use it.
+Extraction, verified matching and refinement in one object that holds the extractor and the
+matcher once. It is the single code path for :func:`register_scans`, ``graffmatch register``,
+the demo, the evaluation's GraffMatch methods and ``graffmatch loops``; its config is a nested
+pydantic model, written next to every result.
+
+With raw scans at hand, the winner is refined by ICP on the voxel-downsampled non-ground scans
+(or on the matched landmarks' points), and a refinement that moves the verified answer by more
+than a rival would differ (``verification.rival_deg`` / ``rival_m``) makes the result invalid:
+landmarks and points then disagree about where the scans are.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
+from pydantic import BaseModel, ConfigDict, Field
 
+from graffmatch.errors import InvalidInputError
 from graffmatch.geometry.landmarks import LandmarkSet
+from graffmatch.geometry.transforms import rotation_error_deg
 from graffmatch.lidar.extractor import LandmarkExtractor, LandmarkExtractorConfig
 from graffmatch.matcher import GraffMatchConfig, GraffMatcher, MatchResult
+from graffmatch.verification.evidence import voxel_downsample
+
+
+class RefinementConfig(BaseModel):
+    """ICP after the verified landmark registration (the paper's GraffMatch+ICP)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    method: Literal["none", "icp"] = Field("none", description="none, or icp")
+    points: Literal["scans", "landmarks"] = Field(
+        "scans",
+        description="scans: the raw scans without their ground (when given); landmarks: the matched "
+        "landmarks' support points only",
+    )
+    voxel: float = Field(0.4, gt=0, description="voxel size of the scans used by ICP [m]")
+    max_points: int = Field(8000, ge=10, description="most points per scan used by ICP")
+    ground_clearance: float = Field(0.3, ge=0, description="points this close above the ground plane are ground [m]")
+    max_correspondence_distance: float = Field(0.5, gt=0, description="ICP correspondence distance [m]")
+    max_iterations: int = Field(30, ge=1, description="ICP iterations")
+    point_to_plane: bool = Field(True, description="point-to-plane (else point-to-point)")
+    normal_radius: float = Field(1.0, gt=0, description="radius of the target normals [m]")
+
+
+class ScanMatcherConfig(BaseModel):
+    """Every setting of the scan-to-scan path, nested by stage."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    extractor: LandmarkExtractorConfig = Field(default_factory=LandmarkExtractorConfig)
+    matcher: GraffMatchConfig = Field(default_factory=GraffMatchConfig)
+    refinement: RefinementConfig = Field(default_factory=RefinementConfig)
 
 
 @dataclass
@@ -24,7 +67,9 @@ class ScanRegistration:
     source_landmarks: LandmarkSet
     target_landmarks: LandmarkSet
 
-    def __getattr__(self, name: str):  # T_target_source, valid, kappa, ... of the result
+    def __getattr__(self, name: str):  # T_target_source, valid, confidence, ... of the result
+        if name == "result":  # not yet set (e.g. during unpickling)
+            raise AttributeError(name)
         return getattr(self.result, name)
 
     def __repr__(self) -> str:
@@ -32,6 +77,121 @@ class ScanRegistration:
             f"ScanRegistration(source={self.source_landmarks.counts()}, "
             f"target={self.target_landmarks.counts()},\n {self.result!r})"
         )
+
+
+def _as_points(points: ArrayLike, name: str) -> NDArray[np.float64]:
+    try:
+        P = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(f"{name} must be an (N, 3|4) array of numbers: {exc}") from None
+    if P.ndim != 2 or P.shape[1] < 3:
+        raise InvalidInputError(f"{name} must be an (N, 3|4) array, got shape {P.shape}")
+    return P[:, :3]
+
+
+def non_ground_points(points: ArrayLike, landmarks: LandmarkSet, clearance: float) -> NDArray[np.float64]:
+    """Scan points not on or just above the ground plane landmark (all points if none)."""
+    P = _as_points(points, "points")
+    P = P[np.all(np.isfinite(P), axis=1)]
+    g = landmarks.attributes.get("is_ground")
+    if g is None or not np.any(np.asarray(g) > 0.5):
+        return P
+    i = int(np.flatnonzero(np.asarray(g) > 0.5)[0])
+    n = landmarks.directions[i]
+    n = n if n[2] >= 0 else -n
+    h = (P - landmarks.anchors[i]) @ n
+    return P[h > clearance]
+
+
+class ScanMatcher:
+    """Register LiDAR scans without an initial guess: extract, match, verify, refine.
+
+    Example::
+
+        sm = ScanMatcher()
+        reg = sm.register(source_points, target_points)
+        if reg.valid:
+            T = reg.T_target_source  # maps source-frame points into the target frame
+    """
+
+    def __init__(self, config: ScanMatcherConfig | None = None) -> None:
+        self.config = config or ScanMatcherConfig()
+        self.extractor = LandmarkExtractor(self.config.extractor)
+        self.matcher = GraffMatcher(self.config.matcher)
+
+    def extract(self, points: ArrayLike, labels: ArrayLike | None = None) -> LandmarkSet:
+        """Landmarks of one scan (with support points, which verification uses)."""
+        return self.extractor.extract(points, labels)
+
+    def match(self, source: LandmarkSet, target: LandmarkSet) -> MatchResult:
+        """Verified match of two landmark sets (e.g. loaded from compact files)."""
+        return self.matcher.match(source, target)
+
+    def refine(
+        self, result: MatchResult, source: LandmarkSet, target: LandmarkSet,
+        source_points: ArrayLike | None = None, target_points: ArrayLike | None = None,
+    ) -> MatchResult:
+        """ICP from the verified transform (in place); invalid when ICP moves it by more than a
+        distinct rival would differ. Needs a transform; a no-op for method 'none'."""
+        rc = self.config.refinement
+        if rc.method == "none" or result.T_target_source is None:
+            return result
+        from graffmatch.registration.icp import matched_support_points, refine_icp
+
+        t0 = time.perf_counter()
+        if rc.points == "scans" and source_points is not None and target_points is not None:
+            ps = voxel_downsample(non_ground_points(source_points, source, rc.ground_clearance), rc.voxel, rc.max_points)
+            pt = voxel_downsample(non_ground_points(target_points, target, rc.ground_clearance), rc.voxel, rc.max_points)
+            used = "scans"
+        else:
+            if source.points is None or target.points is None:
+                raise InvalidInputError(
+                    "ICP refinement needs the scans or the landmarks' support points (extract with points)"
+                )
+            if len(result.associations) == 0:
+                raise InvalidInputError("ICP refinement: the matcher selected no associations")
+            ps, pt = matched_support_points(source, target, result.associations)
+            used = "landmarks"
+        if len(ps) < 10 or len(pt) < 10:
+            raise InvalidInputError(f"ICP refinement: too few points ({len(ps)} source, {len(pt)} target)")
+        T0 = result.T_target_source
+        T, fitness, rmse = refine_icp(ps, pt, T0, rc.max_correspondence_distance, rc.max_iterations,
+                                      rc.point_to_plane, rc.normal_radius)
+        rot = rotation_error_deg(T[:3, :3], T0[:3, :3])
+        tr = float(np.linalg.norm(T[:3, 3] - T0[:3, 3]))
+        result.info.update(icp_fitness=fitness, icp_rmse=rmse, icp_points=used,
+                           icp_correction_deg=rot, icp_correction_m=tr, T_before_icp=T0.tolist())
+        result.T_target_source = np.asarray(T, dtype=np.float64)
+        result.timings["icp"] = time.perf_counter() - t0
+        result.timings["total"] = sum(v for k, v in result.timings.items() if k != "total")
+        vcfg = self.config.matcher.verification
+        if result.valid and (rot > vcfg.rival_deg or tr > vcfg.rival_m):
+            result.valid = False
+            result.confidence = min(result.confidence, 0.5)
+            result.message = (f"ICP moved the verified answer by {rot:.1f} deg / {tr:.2f} m "
+                              f"(> {vcfg.rival_deg} deg / {vcfg.rival_m} m): landmarks and points disagree")
+        return result
+
+    def register(
+        self, source_points: ArrayLike, target_points: ArrayLike,
+        source_labels: ArrayLike | None = None, target_labels: ArrayLike | None = None,
+    ) -> ScanRegistration:
+        """Register two scans ((N, 3|4) arrays, sensor frames); ``T_target_source`` maps source
+        points into the target frame."""
+        t0 = time.perf_counter()
+        src = self.extract(source_points, source_labels)
+        tgt = self.extract(target_points, target_labels)
+        t_extract = time.perf_counter() - t0
+        for name, ls in (("source", src), ("target", tgt)):
+            if len(ls) < 2:
+                raise InvalidInputError(
+                    f"{name} scan gave {len(ls)} landmark(s); at least 2 are needed to match"
+                )
+        result = self.match(src, tgt)
+        result.timings = {"extraction": t_extract, **result.timings}
+        self.refine(result, src, tgt, source_points, target_points)
+        result.timings["total"] = sum(v for k, v in result.timings.items() if k != "total")
+        return ScanRegistration(result, src, tgt)
 
 
 def register_scans(
@@ -42,30 +202,21 @@ def register_scans(
     extractor_config: LandmarkExtractorConfig | None = None,
     matcher_config: GraffMatchConfig | None = None,
     refine_icp: bool = False,
+    config: ScanMatcherConfig | None = None,
 ) -> ScanRegistration:
     """Register two LiDAR scans ((N, 3|4) arrays, sensor frames) without an initial guess.
 
-    ``result.T_target_source`` maps source-frame points into the target frame. With
-    ``refine_icp`` the landmark estimate is refined by ICP on the matched landmarks' points.
+    A shortcut for ``ScanMatcher(config).register(...)``; ``extractor_config``,
+    ``matcher_config`` and ``refine_icp`` override the matching parts of ``config``.
     """
-    extractor = LandmarkExtractor(extractor_config)
-    t0 = time.perf_counter()
-    src = extractor.extract(source_points, source_labels)
-    tgt = extractor.extract(target_points, target_labels)
-    t_extract = time.perf_counter() - t0
-    result = GraffMatcher(matcher_config).match(src, tgt)
-    result.timings = {"extraction": t_extract, **result.timings}
-    if refine_icp and result.valid and result.T_target_source is not None:
-        from graffmatch.registration.icp import matched_support_points
-        from graffmatch.registration.icp import refine_icp as icp
-
-        t1 = time.perf_counter()
-        inl = result.info.get("registration_inliers")
-        assoc = result.associations if inl is None else result.associations[inl]
-        ps, pt = matched_support_points(src, tgt, assoc)
-        T, fitness, rmse = icp(ps, pt, result.T_target_source, max_correspondence_distance=0.5)
-        result.T_target_source = np.asarray(T)
-        result.info.update(icp_fitness=fitness, icp_rmse=rmse)
-        result.timings["icp"] = time.perf_counter() - t1
-    result.timings["total"] = sum(v for k, v in result.timings.items() if k != "total")
-    return ScanRegistration(result, src, tgt)
+    cfg = config or ScanMatcherConfig()
+    updates: dict = {}
+    if extractor_config is not None:
+        updates["extractor"] = extractor_config
+    if matcher_config is not None:
+        updates["matcher"] = matcher_config
+    if refine_icp:
+        updates["refinement"] = cfg.refinement.model_copy(update={"method": "icp"})
+    if updates:
+        cfg = cfg.model_copy(update=updates)
+    return ScanMatcher(cfg).register(source_points, target_points, source_labels, target_labels)

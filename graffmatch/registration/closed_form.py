@@ -128,6 +128,8 @@ def register_batch(
     kappa_max: float = 1e3,
     n_groups: int | None = None,
     parallel_spread: float = 0.03,
+    line_anchor_weight: float = 0.01,
+    weak_ratio: float = 1e-2,
 ) -> BatchRegistration:
     """Register many association groups at once (vectorised: batched 3x3 SVDs and solves).
 
@@ -137,6 +139,9 @@ def register_batch(
     directions are (nearly) parallel -- their second principal spread below ``parallel_spread``
     of the first, e.g. vertical poles only -- the rotation about them is fixed by the lines'
     centred positions across the common direction, which the directions alone cannot do.
+    ``line_anchor_weight`` weights the along-axis agreement of line anchors in the translation
+    (a weak prior that fixes the height of pole-only matches; 0 disables it). It acts only on
+    translation directions whose geometric eigenvalue is below ``weak_ratio`` of the largest.
     """
     A = np.asarray(associations, dtype=np.int64).reshape(-1, 2)
     k = len(A)
@@ -225,21 +230,37 @@ def register_batch(
 
     # Translation: normal equations sum M_i t = sum M_i r_i with M_i the row space of each type.
     eye = np.eye(3)
-    M = np.where(
-        (ts == LandmarkType.PLANE)[:, None, None], dt[:, :, None] * dt[:, None, :],
-        np.where(is_line[:, None, None], eye - dt[:, :, None] * dt[:, None, :], eye),
+    ddT = dt[:, :, None] * dt[:, None, :]
+    M_geo = np.where(
+        (ts == LandmarkType.PLANE)[:, None, None], ddT,
+        np.where(is_line[:, None, None], eye - ddT, eye),
     ) * w[:, None, None]
+    # Weak prior: a pole's anchor (its support centroid) roughly corresponds along its axis.
+    # Negligible where planes fix the translation; it fixes the height when only near-parallel
+    # poles are matched. kappa is computed from the geometric constraints alone.
+    M = M_geo + (line_anchor_weight * w * is_line)[:, None, None] * ddT
+    AtA_geo = _group_sum(M_geo.reshape(1, k, 9), g, G).reshape(G, 3, 3)
     AtA = _group_sum(M.reshape(1, k, 9), g, G).reshape(G, 3, 3)
     r = bt[None] - np.einsum("cgij,cgj->cgi", R[:, g], np.broadcast_to(bs, (C, k, 3)))  # (C, k, 3)
-    Mr = np.einsum("kij,ckj->cki", M, r)
-    Atb = _group_sum(Mr, g, G)  # (C, G, 3)
-    rMr = _group_sum(np.einsum("cki,cki->ck", r, Mr)[:, :, None], g, G)[..., 0]
-    lam, Q = np.linalg.eigh(AtA)  # ascending
-    lam_max = np.maximum(lam[:, 2], 1e-300)
-    inv_lam = np.where(lam > 1e-18 * lam_max[:, None], 1.0 / np.where(lam > 0, lam, 1.0), 0.0)
-    pinv = np.einsum("gik,gk,gjk->gij", Q, inv_lam, Q)
-    t = np.einsum("gij,cgj->cgi", pinv, Atb)
-    tres = rMr - np.einsum("cgi,cgi->cg", t, Atb)
+    Mr_geo = np.einsum("kij,ckj->cki", M_geo, r)
+    Atb_geo = _group_sum(Mr_geo, g, G)  # (C, G, 3)
+    rMr = _group_sum(np.einsum("cki,cki->ck", r, Mr_geo)[:, :, None], g, G)[..., 0]
+    lam_geo, Q = np.linalg.eigh(AtA_geo)  # ascending
+    lam_max = np.maximum(lam_geo[:, 2], 1e-300)
+    # Directions the geometry fixes come from it alone; weakly fixed ones (e.g. along parallel
+    # poles) from the full system with the anchor prior.
+    strong = lam_geo >= weak_ratio * lam_max[:, None]
+    inv_lam = np.where(strong, 1.0 / np.where(lam_geo > 0, lam_geo, 1.0), 0.0)
+    t = np.einsum("gik,gk,gjk,cgj->cgi", Q, inv_lam, Q, Atb_geo)
+    if not strong.all():
+        Atb = _group_sum(np.einsum("kij,ckj->cki", M, r), g, G)
+        lam, Qf = np.linalg.eigh(AtA)
+        lam_f_max = np.maximum(lam[:, 2], 1e-300)
+        inv_f = np.where(lam > 1e-18 * lam_f_max[:, None], 1.0 / np.where(lam > 0, lam, 1.0), 0.0)
+        t_full = np.einsum("gik,gk,gjk,cgj->cgi", Qf, inv_f, Qf, Atb)
+        P_weak = np.einsum("gik,gk,gjk->gij", Q, (~strong).astype(float), Q)
+        t = t + np.einsum("gij,cgj->cgi", P_weak, t_full)
+    tres = rMr - 2 * np.einsum("cgi,cgi->cg", t, Atb_geo) + np.einsum("cgi,gij,cgj->cg", t, AtA_geo, t)
     cos = np.abs(np.einsum("ki,cki->ck", dt, np.einsum("ckij,kj->cki", R[:, g], ds)))
     rot_res = _group_sum(((w * is_dir)[None] * (1.0 - cos))[:, :, None], g, G)[..., 0]
     cost = rot_res + np.maximum(tres, 0.0) / (1.0 + wsum_g[None])
@@ -252,7 +273,7 @@ def register_batch(
     S0 = np.maximum(S[:, 0], 1e-300)
     rot_rank = np.sum(S > tol * S0[:, None], axis=1) * (S[:, 0] > 0)
     k_rot = np.where(S[:, 1] > tol * S0, S[:, 0] / np.where(S[:, 1] > 0, S[:, 1], 1.0), np.inf)
-    sv = np.sqrt(np.clip(lam[:, ::-1], 0, None))  # singular values of the stacked rows
+    sv = np.sqrt(np.clip(lam_geo[:, ::-1], 0, None))  # singular values of the geometric rows
     sv0 = np.maximum(sv[:, 0], 1e-300)
     tr_rank = np.sum(sv > tol * sv0[:, None], axis=1) * (sv[:, 0] > 0)
     k_tr = np.where(sv[:, 2] > tol * sv0, sv[:, 0] / np.where(sv[:, 2] > 0, sv[:, 2], 1.0), np.inf)

@@ -39,6 +39,7 @@ class VerificationConfig(BaseModel):
     # evidence
     voxel: float = Field(0.3, gt=0, description="voxel size of the support points used as evidence [m]")
     max_points: int = Field(1500, ge=10, description="most support points per scan used as evidence")
+    align_top: int = Field(3, ge=0, description="leading hypotheses aligned on the evidence points before exact scoring")
     inlier_m: float = Field(0.3, gt=0, description="a point is explained within this distance [m]")
     landmark_deg: float = Field(5.0, gt=0, description="landmark-level evidence: angle tolerance [deg]")
     landmark_m: float = Field(0.4, gt=0, description="landmark-level evidence: offset tolerance [m]")
@@ -49,6 +50,9 @@ class VerificationConfig(BaseModel):
     )
     min_landmark_overlap: float = Field(
         0.3, ge=0, le=1, description="without support points: share of landmarks with a counterpart"
+    )
+    min_landmarks_explained: int = Field(
+        6, ge=1, description="without support points: fewest landmarks that must land on a counterpart"
     )
     confidence_coef: tuple[float, float, float] = Field(
         (-6.0, 14.0, 4.0),

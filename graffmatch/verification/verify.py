@@ -25,6 +25,7 @@ from graffmatch.verification.decision import (
 )
 from graffmatch.verification.evidence import (
     SupportCloud,
+    align_on_evidence,
     landmark_overlap,
     occupancy_overlap,
     point_overlap,
@@ -106,12 +107,17 @@ def _premerge(hyps: list[Hypothesis], cfg: VerificationConfig) -> list[Hypothesi
 
 
 def _refine(best: Hypothesis, source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64],
-            kappa_max: float, gate: tuple[float, float], min_associations: int) -> None:
+            kappa_max: float, gate: tuple[float, float], min_associations: int,
+            keep_transform: bool = False) -> None:
     """Re-associate under the winner's transform (all putative associations within the residual
     gate, one-to-one) and re-register: more correspondences, a more accurate transform. Kept
     only when well-conditioned and close to the verified transform."""
     A = reassociate(source, target, associations, best.T_target_source, gate[1], gate[0])
     if len(A) < max(min_associations, best.n_associations):
+        return
+    if keep_transform:  # the transform is point-aligned already: only the correspondences change
+        best.info["clique_associations"] = best.n_associations
+        best.associations = A
         return
     try:
         b = register_batch(source, target, A, None, None, kappa_max, 1)
@@ -137,7 +143,10 @@ def score_hypotheses(
         return
     Ts = np.stack([h.T_target_source for h in hyps])
     if not ev.has_points:
-        parts = landmark_overlap(source, target, Ts, cfg.landmark_deg, cfg.landmark_m)
+        counts: list = []
+        parts = landmark_overlap(source, target, Ts, cfg.landmark_deg, cfg.landmark_m, counts)
+        for h, c in zip(hyps, counts[0], strict=True):
+            h.info["landmarks_explained"] = int(c)
     elif exact:
         parts = np.array([point_overlap(ev.source, ev.target, T, cfg.inlier_m) for T in Ts])  # type: ignore[arg-type]
     else:
@@ -184,14 +193,26 @@ def verify_graph(
     ev = evidence if evidence is not None else evidence_for(source, target, cfg)
     score_hypotheses(hyps, source, target, ev, cfg, exact=False)
     merged = merge_hypotheses(hyps, cfg)[: cfg.max_hypotheses]
-    if ev.has_points:  # stage 2: exact distances for the few that matter
+    if ev.has_points:  # stage 2: align the leaders on the evidence points, exact distances
+        for h in merged[: cfg.align_top]:
+            T = align_on_evidence(ev.source, ev.target, h.T_target_source)  # type: ignore[arg-type]
+            h.info["T_landmarks"] = h.T_target_source
+            h.T_target_source = T
         score_hypotheses(merged, source, target, ev, cfg, exact=True)
         merged = merge_hypotheses(merged, cfg)
     min_score = cfg.min_overlap if ev.has_points else cfg.min_landmark_overlap
     verdict = decide(merged, cfg, min_score)
+    if not ev.has_points and verdict.best is not None:
+        n_ok = verdict.best.info.get("landmarks_explained", 0)
+        if n_ok < cfg.min_landmarks_explained:
+            verdict.valid = False
+            verdict.problems.append(
+                f"only {n_ok} landmarks explained (< {cfg.min_landmarks_explained}) without support points"
+            )
     tm["evidence"] = time.perf_counter() - t5
     if verdict.best is not None and gate is not None and not verdict.best.degenerate:
         t6 = time.perf_counter()
-        _refine(verdict.best, source, target, associations, kappa_max, gate, min_associations)
+        _refine(verdict.best, source, target, associations, kappa_max, gate, min_associations,
+                keep_transform="T_landmarks" in verdict.best.info)
         tm["registration"] += time.perf_counter() - t6
     return verdict, merged

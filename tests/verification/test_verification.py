@@ -1,0 +1,159 @@
+"""Trust of ``valid``: negatives rejected, symmetric scenes ambiguous with the rival named,
+pole-only scenes registered, planted scenes right, never valid-and-wrong in fuzzed inputs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from graffmatch.datasets.landmark_scene import make_scene_pair
+from graffmatch.geometry.landmarks import LandmarkSet
+from graffmatch.geometry.transforms import (
+    invert,
+    make_transform,
+    random_transform,
+    rot_z,
+    transform_errors,
+)
+from graffmatch.matcher import GraffMatchConfig, GraffMatcher
+from graffmatch.registration.closed_form import register_batch, register_landmarks
+
+ROT_OK, TRANS_OK = 5.0, 1.0
+
+
+def _wrong(res, T) -> bool:
+    r, t = transform_errors(res.T_target_source, T)
+    return r > ROT_OK or t > TRANS_OK
+
+
+def test_unrelated_scenes_are_never_valid():
+    m = GraffMatcher()
+    n_valid = 0
+    for seed in range(12):
+        a = make_scene_pair(15, 30, seed=seed)
+        b = make_scene_pair(15, 30, seed=seed + 100)
+        res = m.match(a.source, b.target)
+        n_valid += res.valid
+        assert res.confidence <= 0.5
+    assert n_valid == 0
+
+
+def test_planted_scenes_are_valid_and_right_with_rival_reported():
+    m = GraffMatcher()
+    for seed in range(6):
+        sc = make_scene_pair(15, 30, seed=seed)
+        res = m.match(sc.source, sc.target)
+        assert res.valid, res.message
+        r, t = transform_errors(res.T_target_source, sc.T_target_source)
+        assert r < 1.0 and t < 0.5
+        assert res.confidence > 0.9 and 0.0 < res.margin <= 1.0 and res.overlap > 0.5
+        assert len(res.hypotheses) >= 2 and res.runner_up is not None
+        assert res.runner_up.score < res.overlap
+        d = res.to_dict()
+        assert d["runner_up"]["n_associations"] == res.runner_up.n_associations
+
+
+def _symmetric_courtyard() -> LandmarkSet:
+    """A rectangular courtyard: 4 walls and 4 corner poles, symmetric under a 180 deg yaw."""
+    walls_n = [[1, 0, 0], [1, 0, 0], [0, 1, 0], [0, 1, 0]]
+    walls_b = [[-10, 0, 3], [10, 0, 3], [0, -6, 3], [0, 6, 3]]
+    poles_b = [[-7, -4, 0], [7, 4, 0], [-7, 4, 0], [7, -4, 0]]
+    types = [2] * 4 + [1] * 4
+    dirs = walls_n + [[0, 0, 1]] * 4
+    return LandmarkSet.from_arrays(types, dirs, walls_b + poles_b,
+                                   {"extent": np.r_[[150.0, 150, 80, 80], [6.0] * 4]})
+
+
+def test_symmetric_courtyard_is_ambiguous_and_names_the_rival():
+    tgt = _symmetric_courtyard()
+    T = make_transform(rot_z(np.radians(30)), [2.0, 1.0, 0.0])
+    src = tgt.transform(invert(T))
+    res = GraffMatcher().match(src, tgt)
+    assert not res.valid
+    assert "ambiguous" in res.message and "180 deg" in res.message
+    assert res.runner_up is not None
+    gap = transform_errors(res.runner_up.T_target_source, res.T_target_source)[0]
+    assert abs(gap - 180.0) < 1.0
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_pole_only_scenes_register(seed):
+    """Vertical poles alone fix the yaw through their positions (the lines-only variant had
+    0-2 % recall). Bare pole landmarks cannot verify the height (hypotheses that differ only
+    along the poles explain them equally), so valid=False is allowed, valid-and-wrong is not."""
+    sc = make_scene_pair(20, 6, seed=seed)
+    res = GraffMatcher(GraffMatchConfig(landmark_types=["line"])).match(sc.source, sc.target)
+    r, _ = transform_errors(res.T_target_source, sc.T_target_source)
+    dxy = np.linalg.norm(res.T_target_source[:2, 3] - sc.T_target_source[:2, 3])
+    assert r < 1.5 and dxy < 0.5
+    if res.valid:
+        assert not _wrong(res, sc.T_target_source)
+    else:
+        assert "ambiguous" in res.message
+
+
+def test_register_batch_equals_single_registrations():
+    sc = make_scene_pair(15, 30, seed=4)
+    A = sc.true_matches
+    rng = np.random.default_rng(0)
+    subsets = [np.sort(rng.choice(len(A), k, replace=False)) for k in (4, 9, 15, len(A))]
+    groups = np.concatenate([np.full(len(s), i) for i, s in enumerate(subsets)])
+    batch = register_batch(sc.source, sc.target, np.concatenate([A[s] for s in subsets]), groups)
+    for i, s in enumerate(subsets):
+        single = register_landmarks(sc.source, sc.target, A[s])
+        np.testing.assert_allclose(batch.T_target_source[i], single.T_target_source, atol=1e-9)
+        assert batch.kappa[i] == pytest.approx(single.kappa, rel=1e-9)
+
+
+def test_deterministic_hypotheses():
+    sc = make_scene_pair(12, 24, seed=5)
+    a = GraffMatcher().match(sc.source, sc.target)
+    b = GraffMatcher().match(sc.source, sc.target)
+    assert np.array_equal(a.T_target_source, b.T_target_source)
+    assert [h.to_dict() for h in a.hypotheses] == [h.to_dict() for h in b.hypotheses]
+    assert a.confidence == b.confidence
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n_poles=st.integers(0, 12),
+    n_planes=st.integers(2, 20),
+    n_outliers=st.integers(0, 10),
+    overlap=st.floats(0.3, 1.0),
+    unit=st.sampled_from([1.0, 1.0, 1.0, 2.0, 0.01]),
+    far=st.sampled_from([0.0, 0.0, 5e4]),
+)
+def test_fuzz_valid_results_are_right(seed, n_poles, n_planes, n_outliers, overlap, unit, far):
+    """Degenerate geometry, outliers, low overlap, far coordinates, wrong units: whatever the
+    matcher says valid is within 5 deg / 1 m (bench/fuzz_validity.py runs 10,000)."""
+    sc = make_scene_pair(n_poles, n_planes, seed=seed, overlap=overlap, n_outliers=n_outliers,
+                         yaw_deg=float(np.random.default_rng(seed).uniform(-180, 180)))
+    src, tgt, T = sc.source, sc.target, sc.T_target_source
+    if unit != 1.0:  # the source in the wrong unit: no rigid transform explains it
+        src = LandmarkSet.from_arrays(src.types, src.directions, src.anchors * unit, src.attributes)
+    if far:
+        shift = make_transform(np.eye(3), [far, -far, 0.0])
+        tgt = tgt.transform(shift)
+        T = shift @ T
+    if len(src) < 2 or len(tgt) < 2:
+        return
+    res = GraffMatcher().match(src, tgt)
+    if res.valid:
+        assert unit == 1.0, f"valid for a source in the wrong unit ({unit}): {res.message}"
+        assert not _wrong(res, T), (transform_errors(res.T_target_source, T), res.message)
+
+
+def test_two_true_landmarks_and_outliers_are_not_valid():
+    """The issue's example: 2 true landmarks plus 2 outliers gave valid, 179 deg off."""
+    rng = np.random.default_rng(3)
+    for _ in range(10):
+        tgt = LandmarkSet.from_arrays([2, 1, 2, 1], rng.normal(size=(4, 3)), rng.uniform(-20, 20, (4, 3)))
+        T = random_transform(rng, 10)
+        src = tgt.transform(invert(T))
+        out = LandmarkSet.from_arrays([2, 1], rng.normal(size=(2, 3)), rng.uniform(-20, 20, (2, 3)))
+        src = LandmarkSet.concatenate([src[:2], out])
+        res = GraffMatcher().match(src, tgt)
+        assert not (res.valid and _wrong(res, T))
