@@ -160,6 +160,7 @@ class ScanMatcher:
         rot = rotation_error_deg(T[:3, :3], T0[:3, :3])
         tr = float(np.linalg.norm(T[:3, 3] - T0[:3, 3]))
         result.info.update(icp_fitness=fitness, icp_rmse=rmse, icp_points=used,
+                           icp_n_source=len(ps), icp_n_target=len(pt),
                            icp_correction_deg=rot, icp_correction_m=tr, T_before_icp=T0.tolist())
         result.T_target_source = np.asarray(T, dtype=np.float64)
         result.timings["icp"] = time.perf_counter() - t0

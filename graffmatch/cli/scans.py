@@ -217,8 +217,15 @@ def register(
         Path | None, typer.Option(help="SemanticKITTI labels of the target scan.")
     ] = None,
     scale: ScaleOption = "1",
+    allow_invalid: Annotated[
+        bool,
+        typer.Option(help="Write --pose-out (and print the pose with -q) even when the result is not valid."),
+    ] = False,
 ) -> None:
-    """Register SOURCE to TARGET: print T_target_source, inliers, score, κ and validity."""
+    """Register SOURCE to TARGET: print T_target_source, confidence, inliers, κ and validity.
+
+    An invalid result prints INVALID: <reason> on stderr, no pose on stdout, writes no pose file
+    (unless --allow-invalid) and exits with 3."""
     from graffmatch.cli.inputs import gt_from_dataset, path_record, read_transform, write_pose_file
 
     # Check the cheap things first: a typo must not cost an extraction.
@@ -241,23 +248,41 @@ def register(
             src = load_input(source, source_labels, label_mode, extractor, scale)
         with stage(progress, task, f"reading {target.name}"):
             tgt = load_input(target, target_labels, label_mode, extractor, scale)
-        with stage(progress, task, "matching"):
-            from graffmatch.matcher import GraffMatcher
+        from graffmatch.pipeline import RefinementConfig, ScanMatcher, ScanMatcherConfig
 
-            result = GraffMatcher(settings.matcher).match(src.landmarks, tgt.landmarks)
-        T_matcher = result.T_target_source
-        T_est = None if T_matcher is None else np.asarray(T_matcher, float)
-        assoc = np.asarray(result.associations, dtype=np.int64).reshape(-1, 2)
+        both_scans = src.points is not None and tgt.points is not None
+        scan_matcher = ScanMatcher(ScanMatcherConfig(
+            extractor=settings.extractor, matcher=settings.matcher,
+            refinement=RefinementConfig(
+                method=refine.value, points="scans" if both_scans else "landmarks",
+                **settings.icp.model_dump(),
+            ),
+        ))
+        with stage(progress, task, "matching and verifying"):
+            result = scan_matcher.match(src.landmarks, tgt.landmarks)
+        T_matcher = None if result.T_target_source is None else result.T_target_source.copy()
         refine_info = None
-        if refine == RefineChoice.icp and T_est is not None:
+        if refine == RefineChoice.icp and T_matcher is not None:
             with stage(progress, task, "ICP refinement"):
-                refine_info = _refine_icp(src.landmarks, tgt.landmarks, assoc, T_est, result)
-                T_est = refine_info["T_target_source"]
+                scan_matcher.refine(result, src.landmarks, tgt.landmarks, src.points, tgt.points)
+                i = result.info
+                refine_info = {
+                    "method": "icp", "points": i["icp_points"],
+                    "T_target_source": np.asarray(result.T_target_source, float), "T_init": T_matcher,
+                    "fitness": float(i["icp_fitness"]), "inlier_rmse": float(i["icp_rmse"]),
+                    "n_source_points": int(i["icp_n_source"]), "n_target_points": int(i["icp_n_target"]),
+                    "correction_deg": float(i["icp_correction_deg"]), "correction_m": float(i["icp_correction_m"]),
+                }
+        T_est = None if result.T_target_source is None else np.asarray(result.T_target_source, float)
+        assoc = np.asarray(result.associations, dtype=np.int64).reshape(-1, 2)
     # Far (UTM) clouds were registered around their origins; give the transform of the files.
     T_local = T_est
     if T_est is not None:
         T_est = restore_offsets(T_est, src.origin, tgt.origin)
         T_matcher = restore_offsets(T_matcher, src.origin, tgt.origin)
+        if refine_info is not None:
+            refine_info["T_target_source"] = T_est
+            refine_info["T_init"] = T_matcher
 
     if output is None:
         folder = run_dir(STATE.runs_dir, "register")
@@ -317,6 +342,11 @@ def register(
         "kappa": float(result.kappa),
         "degenerate": bool(result.degenerate),
         "valid": valid,
+        "confidence": float(result.confidence),
+        "overlap": float(result.overlap),
+        "margin": float(result.margin),
+        "runner_up": None if result.runner_up is None else result.runner_up.to_dict(),
+        "hypotheses": [h.to_dict() for h in result.hypotheses],
         "message": str(result.message),
         "n_putative": int(result.n_putative),
         "n_edges": int(result.n_edges),
@@ -335,7 +365,7 @@ def register(
     else:
         write_config_beside(result_path)
     pose_written = None
-    if pose_format is not None and T_est is not None:
+    if pose_format is not None and T_est is not None and (valid or allow_invalid):
         suffix = ".kitti.txt" if pose_format == PoseFormatChoice.kitti else ".tum.txt"
         pose_written = write_pose_file(
             pose_out or result_path.with_suffix(suffix), T_est, pose_format.value
@@ -358,63 +388,17 @@ def register(
             max_points=settings.view.max_points,
             initial=settings.view.initial,
         )
-    _print_register(data, src, tgt, result_path, pose_written, view_written)
+    _print_register(data, src, tgt, result_path, pose_written, view_written, allow_invalid)
     if not valid:
+        err.print(f"INVALID: {result.message}", markup=False, highlight=False)
         raise typer.Exit(EXIT_NOT_VALID)
 
 
-def _refine_icp(src, tgt, assoc: np.ndarray, T_init: np.ndarray, result) -> dict:
-    """ICP on the support points of the matched landmarks only (the paper's GraffMatch+ICP).
-
-    Like :func:`graffmatch.register_scans`, it uses the associations the registration kept
-    (``result.info['registration_inliers']``) when the matcher reports them.
-    """
-    from graffmatch.registration.icp import matched_support_points, refine_icp
-
-    keep = result.info.get("registration_inliers")
-    used = assoc if keep is None else assoc[np.asarray(keep)]
-    if len(used) == 0:
-        raise InvalidInputError("--refine icp: the matcher selected no associations to refine")
-    for name, ls in (("source", src), ("target", tgt)):
-        if ls.points is None:
-            raise InvalidInputError(
-                f"--refine icp needs the {name} landmarks' support points: pass the scan, or "
-                "extract with --with-points"
-            )
-    ps, pt = matched_support_points(src, tgt, used)
-    if len(ps) < 3 or len(pt) < 3:
-        raise InvalidInputError("--refine icp: the matched landmarks carry too few support points")
-    import open3d as o3d
-
-    icp = STATE.settings.icp
-    # One thread: Open3D's parallel sums change the last bits from run to run otherwise.
-    o3d.utility.set_max_threads(1)
-    try:
-        T, fitness, rmse = refine_icp(
-            ps,
-            pt,
-            T_init,
-            max_correspondence_distance=icp.max_correspondence_distance,
-            max_iterations=icp.max_iterations,
-            point_to_plane=icp.point_to_plane,
-            normal_radius=icp.normal_radius,
-        )
-    finally:
-        o3d.utility.set_max_threads(0)
-    return {
-        "method": "icp",
-        "T_target_source": np.asarray(T, float),
-        "T_init": T_init,
-        "fitness": float(fitness),
-        "inlier_rmse": float(rmse),
-        "n_associations": len(used),
-        "n_source_points": len(ps),
-        "n_target_points": len(pt),
-    }
-
-
-def _print_register(data, src, tgt, result_path, pose_written, view_written) -> None:
+def _print_register(data, src, tgt, result_path, pose_written, view_written,
+                    allow_invalid: bool = False) -> None:
     if STATE.quiet:
+        if not data["valid"] and not allow_invalid:
+            return  # no pose on stdout for an invalid result
         T = data["T_target_source"]
         out.print("none" if T is None else " ".join(f"{v:.9g}" for v in np.asarray(T)[:3].ravel()))
         return
@@ -452,19 +436,25 @@ def _print_register(data, src, tgt, result_path, pose_written, view_written) -> 
             out.print(f"... {len(assoc) - n_rows} more association(s) in the result JSON (-v: all)")
     if data["T_target_source"] is None:
         out.print("[bold]T_target_source[/bold]: none (no estimate)")
-    else:
+    elif data["valid"] or allow_invalid:
         print_matrix(data["T_target_source"], "T_target_source")
+    else:
+        out.print("[bold]T_target_source[/bold]: withheld (not valid; --allow-invalid shows it)")
     verdict = "[green]valid[/green]" if data["valid"] else "[red]NOT valid[/red]"
     out.print(
-        f"associations {len(assoc)}  score {data['score']:.3f}  κ {data['kappa']:.3g}  "
-        f"degenerate {data['degenerate']}  {verdict}"
+        f"confidence {data['confidence']:.3f}  overlap {data['overlap']:.3f}  margin {data['margin']:.3f}  "
+        f"associations {len(assoc)}  κ {data['kappa']:.3g}  {verdict}"
         + (f"  ({data['message']})" if data["message"] else "")
     )
+    if data["runner_up"]:
+        ru = data["runner_up"]
+        out.print(f"runner-up: {ru['origin']}, {ru['n_associations']} associations, score {ru['score']:.3f}")
     if data["refine"]:
         r = data["refine"]
         out.print(
-            f"ICP on {r['n_source_points']}/{r['n_target_points']} landmark points: "
-            f"fitness {r['fitness']:.3f}, inlier RMSE {r['inlier_rmse']:.3f} m"
+            f"ICP on {r['n_source_points']}/{r['n_target_points']} {r['points']} points: "
+            f"fitness {r['fitness']:.3f}, inlier RMSE {r['inlier_rmse']:.3f} m, correction "
+            f"{r['correction_deg']:.2f}° / {r['correction_m']:.3f} m"
         )
     if gt:
         ok = "[green]success[/green]" if gt["success"] else "[red]failure[/red]"

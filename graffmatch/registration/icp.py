@@ -45,15 +45,21 @@ def refine_icp(
     src = _cloud(source_points, "source")
     tgt = _cloud(target_points, "target")
     reg = o3d.pipelines.registration
+    # One thread: Open3D's parallel sums change the last bits from run to run otherwise, and the
+    # same inputs must give the same pose.
+    o3d.utility.set_max_threads(1)
     if point_to_plane:
         tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius, max_nn=30))
         est = reg.TransformationEstimationPointToPlane()
     else:
         est = reg.TransformationEstimationPointToPoint()
-    res = reg.registration_icp(
-        src, tgt, float(max_correspondence_distance), T0, est,
-        reg.ICPConvergenceCriteria(max_iteration=int(max_iterations)),
-    )
+    try:
+        res = reg.registration_icp(
+            src, tgt, float(max_correspondence_distance), T0, est,
+            reg.ICPConvergenceCriteria(max_iteration=int(max_iterations)),
+        )
+    finally:
+        o3d.utility.set_max_threads(0)
     return np.asarray(res.transformation, dtype=np.float64).copy(), float(res.fitness), float(res.inlier_rmse)
 
 
