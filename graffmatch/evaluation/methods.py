@@ -271,18 +271,21 @@ class LocalMethod(MethodBase):
         return MethodOutput(T, a, timer.finish(), valid, info)
 
 
-def _support_points(ls: LandmarkSet, idx: np.ndarray, what: str) -> np.ndarray:
-    if ls.points is None or ls.point_offsets is None:
-        raise InvalidInputError(f"{what} landmarks carry no support points (needed for ICP)")
-    sub = ls[np.unique(idx)]
-    return np.asarray(sub.points, dtype=np.float64)
+def _icp_info(info: dict) -> dict:
+    """The refinement's numbers from a MatchResult's info, under the evaluation's names."""
+    out = {k: info[k] for k in ("icp_fitness", "icp_rmse", "icp") if k in info}
+    if "icp_n_source" in info:
+        out["icp_points"] = int(info["icp_n_source"])
+    return out
 
 
 class GraffMatchMethod:
-    """GraffMatch (``graffmatch.matcher.GraffMatcher``) behind the uniform interface.
+    """GraffMatch behind the uniform interface, through ``graffmatch.pipeline.ScanMatcher`` (the
+    same configured path as ``register_scans``, the CLI and the demo).
 
     Parameters are fields of ``GraffMatchConfig`` (paper defaults: rho=40, epsilon=0.2,
-    sigma=0.05); the registry's variants set ``variant="naive"`` or ``landmark_types``.
+    sigma=0.05); the registry's variants set ``variant="naive"`` or ``landmark_types``. Its
+    native validity signal is ``valid`` with ``confidence`` (``info['confidence']``).
     """
 
     kind: MethodKind = "landmark"
@@ -296,13 +299,19 @@ class GraffMatchMethod:
             config = GraffMatchConfig(**params)
         elif params:
             config = config.model_copy(update=params)
+        from graffmatch.pipeline import RefinementConfig, ScanMatcher, ScanMatcherConfig
+
         self.name = name
         self.config = config
         self.params = config.model_dump(mode="json")
-        self._matcher = GraffMatcher(config)
+        self._scan_matcher = ScanMatcher(ScanMatcherConfig(matcher=config, refinement=self._refinement(RefinementConfig)))
+        self._matcher: GraffMatcher = self._scan_matcher.matcher
+
+    def _refinement(self, cls: Any) -> Any:
+        return cls(method="none")
 
     def _match(self, pair: PairInput) -> Any:
-        return self._matcher.match(pair.source, pair.target)
+        return self._scan_matcher.match(pair.source, pair.target)
 
     def run(self, pair: PairInput) -> MethodOutput:
         timer = Timer()
@@ -327,15 +336,13 @@ class GraffMatchMethod:
                 "n_putative": int(getattr(res, "n_putative", -1)),
                 "n_edges": int(getattr(res, "n_edges", -1)),
                 "message": str(getattr(res, "message", "")),
-                # the native validity signal: the matcher's calibrated confidence when it has
-                # one (issue 11), else its flag
+                # the native validity signal: the matcher's calibrated confidence (issue 11)
                 "validity_score": float(getattr(res, "confidence", float(res.valid))),
                 "validity_signal": "confidence" if hasattr(res, "confidence") else "valid",
-                **{
-                    k: float(getattr(res, k))
-                    for k in ("overlap", "margin")
-                    if isinstance(getattr(res, k, None), int | float)
-                },
+                "confidence": float(getattr(res, "confidence", float(res.valid))),
+                "overlap": float(getattr(res, "overlap", np.nan)),
+                "margin": float(getattr(res, "margin", np.nan)),
+                **_icp_info(getattr(res, "info", {}) or {}),
             },
         )
 
@@ -356,41 +363,37 @@ class GraffMatchICP(GraffMatchMethod):
         config: Any = None,
         **params: Any,
     ) -> None:
-        super().__init__(name=name, config=config, **params)
         self.max_correspondence_distance = float(max_correspondence_distance)
         self.max_iterations = int(max_iterations)
+        super().__init__(name=name, config=config, **params)
         self.params = {
             **self.params,
             "icp_max_correspondence_distance": self.max_correspondence_distance,
             "icp_max_iterations": self.max_iterations,
         }
 
-    def run(self, pair: PairInput) -> MethodOutput:
-        from graffmatch.registration.icp import refine_icp
+    def _refinement(self, cls: Any) -> Any:
+        return cls(method="icp", points="landmarks", max_correspondence_distance=self.max_correspondence_distance,
+                   max_iterations=self.max_iterations, point_to_plane=True)
 
+    def _match(self, pair: PairInput) -> Any:
+        res = self._scan_matcher.match(pair.source, pair.target)
+        if res.T_target_source is None or len(res.associations) == 0:
+            res.info["icp"] = "skipped: no GraffMatch estimate"
+            return res
+        if pair.source.points is None or pair.target.points is None:
+            res.info["icp"] = "skipped: no support points"
+            return res
+        try:
+            self._scan_matcher.refine(res, pair.source, pair.target)
+        except InvalidInputError as exc:
+            res.info["icp"] = f"skipped: {exc}"
+        return res
+
+    def run(self, pair: PairInput) -> MethodOutput:
         out = super().run(pair)
-        a = out.associations
-        if out.T_target_source is None or len(a) == 0:
-            out.info["icp"] = "skipped: no GraffMatch estimate"
-            return out
-        src = _support_points(pair.source, a[:, 0], "source")
-        tgt = _support_points(pair.target, a[:, 1], "target")
-        if len(src) < 3 or len(tgt) < 3:
-            out.info["icp"] = "skipped: matched landmarks have < 3 support points"
-            return out
-        t = time.perf_counter()
-        T, fitness, rmse = refine_icp(
-            src,
-            tgt,
-            out.T_target_source,
-            max_correspondence_distance=self.max_correspondence_distance,
-            max_iterations=self.max_iterations,
-        )
-        dt = time.perf_counter() - t
-        out.timings["icp"] = dt
-        out.timings["total"] += dt
-        out.T_target_source = np.asarray(T, float)
-        out.info.update(icp_fitness=float(fitness), icp_rmse=float(rmse), icp_points=len(src))
+        if "match.icp" in out.timings:
+            out.timings["icp"] = out.timings["match.icp"]
         return out
 
 
