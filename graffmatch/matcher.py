@@ -325,9 +325,12 @@ class GraffMatcher:
         tgt, tgt_idx = _filter_types(target, cfg.landmark_types)
         if associations is not None:
             try:
-                A = np.asarray(associations, dtype=np.int64).reshape(-1, 2)
-            except (TypeError, ValueError) as exc:
-                raise InvalidInputError(f"associations must be an (k, 2) integer array: {exc}") from None
+                raw = np.asarray(associations)
+                A = raw.astype(np.int64).reshape(-1, 2)
+            except (TypeError, ValueError, OverflowError) as exc:
+                raise InvalidInputError(f"associations must be a (k, 2) integer array: {exc}") from None
+            if raw.dtype.kind not in "iub" and not (raw.dtype.kind == "f" and np.array_equal(raw, np.round(raw))):
+                raise InvalidInputError(f"associations must be integer indices, got dtype {raw.dtype}")
             bad = (A < 0) | (A >= np.array([len(source), len(target)]))
             if bad.any():
                 r = int(np.flatnonzero(bad.any(1))[0])

@@ -169,10 +169,8 @@ def test_match_with_valid_associations(k, seed) -> None:
     assert res is None or np.isfinite(res.score)
 
 
-# Found by this guard: GraffMatcher.match (matcher.py) re-indexes `associations` unchecked, so
-# IndexError/ValueError escape, negative indices wrap around and 0.5 is truncated to 0. Reported
-# to the matcher's owner under issue 12; strict, so the fix shows up as XPASS.
-@pytest.mark.xfail(strict=True, reason="issue 12: GraffMatcher.match does not validate associations")
+# Found by this guard: GraffMatcher.match re-indexed `associations` unchecked (IndexError/ValueError
+# escaped, negative indices wrapped around, 0.5 was truncated to 0); it now validates them.
 @pytest.mark.parametrize(
     "assoc",
     [[[0, 999]], [[999, 0]], [[-1, 0]], [[0.5, 1.0]], [["a", 0]], [0, 1, 2], [[2**40, 0]]],
