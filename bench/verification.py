@@ -23,6 +23,7 @@ the calibration split. Prints the tables and writes JSON (``--json``).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import time
 from pathlib import Path
@@ -232,7 +233,7 @@ def reliability(rows: list[dict], coef, valid: np.ndarray, bins: int = 5) -> lis
     st = np.array([r["structural"] for r in rows])
     out = []
     edges = np.linspace(0, 1, bins + 1)
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+    for lo, hi in itertools.pairwise(edges):
         m = st & (conf >= lo) & ((conf < hi) | (hi == 1.0))
         if m.any():
             out.append({"bin": f"{lo:.1f}-{hi:.1f}", "n": int(m.sum()), "mean_confidence": float(conf[m].mean()),

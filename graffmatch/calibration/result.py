@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from graffmatch.errors import DegenerateGeometryError, GraffMatchError
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.matcher import GraffMatchConfig, GraffMatcher, MatchResult
+from graffmatch.verification.config import VerificationConfig
 from graffmatch.registration.closed_form import register_landmarks
 
 Array = NDArray[np.float64]
@@ -29,7 +30,10 @@ CALIBRATION_RHO = 4.0
 
 
 def _plane_matcher_config() -> GraffMatchConfig:
-    return GraffMatchConfig(landmark_types=["plane"], rho=CALIBRATION_RHO)
+    # A board rig has a handful of planes and no support points: verification may rest on 4
+    # explained boards (the calibration adds its own residual and normal-spread gates).
+    return GraffMatchConfig(landmark_types=["plane"], rho=CALIBRATION_RHO,
+                            verification=VerificationConfig(min_landmarks_explained=4))
 
 
 class CalibrationConfig(BaseModel):

@@ -40,21 +40,29 @@ class VerificationConfig(BaseModel):
     voxel: float = Field(0.3, gt=0, description="voxel size of the support points used as evidence [m]")
     max_points: int = Field(1500, ge=10, description="most support points per scan used as evidence")
     align_top: int = Field(3, ge=0, description="leading hypotheses aligned on the evidence points before exact scoring")
+    refine_tolerance: float = Field(
+        0.02, ge=0, description="keep the landmark re-registration unless it explains this much less evidence"
+    )
     inlier_m: float = Field(0.3, gt=0, description="a point is explained within this distance [m]")
     landmark_deg: float = Field(5.0, gt=0, description="landmark-level evidence: angle tolerance [deg]")
     landmark_m: float = Field(0.4, gt=0, description="landmark-level evidence: offset tolerance [m]")
     # decision
-    min_overlap: float = Field(0.25, ge=0, le=1, description="the best hypothesis must explain at least this share")
+    min_overlap: float = Field(
+        0.225, ge=0, le=1,
+        description="the best hypothesis must explain at least this share (chosen on the calibration split)",
+    )
     max_rival_ratio: float = Field(
-        0.8, gt=0, le=1, description="ambiguous when a distinct rival scores more than this fraction of the best"
+        0.725, gt=0, le=1,
+        description="ambiguous when a distinct rival scores more than this fraction of the best (calibration split)",
     )
     min_landmark_overlap: float = Field(
-        0.3, ge=0, le=1, description="without support points: share of landmarks with a counterpart"
+        0.2, ge=0, le=1, description="without support points: graded share of landmarks with a counterpart"
     )
     min_landmarks_explained: int = Field(
         6, ge=1, description="without support points: fewest landmarks that must land on a counterpart"
     )
     confidence_coef: tuple[float, float, float] = Field(
-        (-6.0, 14.0, 4.0),
-        description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio))",
+        (-7.163, 29.995, 1.798),
+        description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio)), fitted on "
+        "the calibration split of bench/verification.py",
     )

@@ -173,7 +173,8 @@ def landmark_overlap(
     source: LandmarkSet, target: LandmarkSet, T_target_source: NDArray[np.float64],
     max_deg: float = 5.0, max_m: float = 0.4, counts: list | None = None,
 ) -> NDArray[np.float64]:
-    """Share of landmarks (ground plane excluded) with a same-type counterpart, both ways.
+    """Graded share of landmarks (ground plane excluded) with a same-type counterpart, both ways
+    (each landmark counts 1 for an exact counterpart, falling linearly to 0 at the tolerances).
     ``counts`` (a list) receives the number of landmarks explained (the smaller direction).
 
     ``T_target_source`` is one (4, 4) transform -> (2,), or H stacked (H, 4, 4) -> (H, 2).
@@ -207,8 +208,11 @@ def landmark_overlap(
     reach = (_reach(src)[:, None] + _reach(tgt)[None, :] + 2.0)[None]
     near = np.where(is_plane | is_line, dist <= reach, True)
     directional = (src.types[:, None] > 0)[None]
-    ok = same & np.where(directional, cosang >= np.cos(np.radians(max_deg)), True) & (off <= max_m) & near
-    out = np.stack([ok.any(axis=2).mean(axis=1), ok.any(axis=1).mean(axis=1)], axis=1)
+    ang = np.degrees(np.arccos(np.clip(cosang, 0.0, 1.0)))
+    ok = same & np.where(directional, ang <= max_deg, True) & (off <= max_m) & near
+    # graded: an exact counterpart counts 1, one at the tolerance 0 (tent kernels)
+    w = np.where(ok, np.where(directional, 1.0 - ang / max_deg, 1.0) * (1.0 - off / max_m), 0.0)
+    out = np.stack([w.max(axis=2).mean(axis=1), w.max(axis=1).mean(axis=1)], axis=1)
     if counts is not None:
         counts.append(np.minimum(ok.any(axis=2).sum(axis=1), ok.any(axis=1).sum(axis=1)))
     return out[0] if single else out

@@ -108,16 +108,14 @@ def _premerge(hyps: list[Hypothesis], cfg: VerificationConfig) -> list[Hypothesi
 
 def _refine(best: Hypothesis, source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64],
             kappa_max: float, gate: tuple[float, float], min_associations: int,
-            keep_transform: bool = False) -> None:
+            ev: Evidence, cfg: VerificationConfig) -> None:
     """Re-associate under the winner's transform (all putative associations within the residual
-    gate, one-to-one) and re-register: more correspondences, a more accurate transform. Kept
-    only when well-conditioned and close to the verified transform."""
+    gate, one-to-one) and re-register from the landmarks: more correspondences, usually a more
+    accurate rotation (plane normals) than the point alignment. With evidence points the
+    transform that explains more of them is kept; without, the re-registration is kept when
+    well-conditioned and close to the verified transform."""
     A = reassociate(source, target, associations, best.T_target_source, gate[1], gate[0])
     if len(A) < max(min_associations, best.n_associations):
-        return
-    if keep_transform:  # the transform is point-aligned already: only the correspondences change
-        best.info["clique_associations"] = best.n_associations
-        best.associations = A
         return
     try:
         b = register_batch(source, target, A, None, None, kappa_max, 1)
@@ -125,12 +123,18 @@ def _refine(best: Hypothesis, source: LandmarkSet, target: LandmarkSet, associat
         return
     if b.degenerate[0]:
         return
-    rot, tr = transform_gap(best.T_target_source, b.T_target_source[0])
-    if rot <= 2 * gate[1] and tr <= 2 * gate[0]:
-        best.info["clique_associations"] = best.n_associations
-        best.T_target_source = b.T_target_source[0]
-        best.associations = A
-        best.kappa = float(b.kappa[0])
+    T_new = b.T_target_source[0]
+    rot, tr = transform_gap(best.T_target_source, T_new)
+    if rot > 2 * gate[1] or tr > 2 * gate[0]:
+        return
+    best.info["clique_associations"] = best.n_associations
+    best.associations = A
+    if ev.has_points:
+        parts = point_overlap(ev.source, ev.target, T_new, cfg.inlier_m)  # type: ignore[arg-type]
+        if 0.5 * (parts[0] + parts[1]) < best.score - cfg.refine_tolerance:
+            return  # the point-aligned transform explains the evidence clearly better
+    best.T_target_source = T_new
+    best.kappa = float(b.kappa[0])
 
 
 def score_hypotheses(
@@ -212,7 +216,6 @@ def verify_graph(
     tm["evidence"] = time.perf_counter() - t5
     if verdict.best is not None and gate is not None and not verdict.best.degenerate:
         t6 = time.perf_counter()
-        _refine(verdict.best, source, target, associations, kappa_max, gate, min_associations,
-                keep_transform="T_landmarks" in verdict.best.info)
+        _refine(verdict.best, source, target, associations, kappa_max, gate, min_associations, ev, cfg)
         tm["registration"] += time.perf_counter() - t6
     return verdict, merged
