@@ -21,8 +21,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from graffmatch.errors import DegenerateGeometryError, GraffMatchError
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.matcher import GraffMatchConfig, GraffMatcher, MatchResult
-from graffmatch.verification.config import VerificationConfig
 from graffmatch.registration.closed_form import register_landmarks
+from graffmatch.verification.config import VerificationConfig
 
 Array = NDArray[np.float64]
 
