@@ -16,12 +16,18 @@ Conditioning: ``kappa_rotation = s1 / s2`` of the correlation matrix (a rotation
 two independent directions, so rank 2 suffices) and ``kappa_translation = s1 / s3`` of the
 translation system. ``kappa = max`` of both; ``degenerate`` when it exceeds ``kappa_max``, e.g.
 all planes parallel or all lines parallel.
+
+Implementation: :func:`register_batch` runs one compiled loop over the groups (3x3 Jacobi SVDs
+and eigen-decompositions, no per-operation overhead); :func:`_register_batch_reference` is the
+batched numpy specification it is tested against, and it re-solves the few groups whose result
+hangs on rounding (see :data:`FRAGILE_REASONS`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -119,7 +125,7 @@ def _seed_pairs(ds: Array, w: Array, g: NDArray[np.int64], G: int) -> tuple[Arra
     return first, second
 
 
-def register_batch(
+def _register_batch_reference(
     source: LandmarkSet,
     target: LandmarkSet,
     associations: ArrayLike,
@@ -131,7 +137,11 @@ def register_batch(
     line_anchor_weight: float = 0.01,
     weak_ratio: float = 1e-2,
 ) -> BatchRegistration:
-    """Register many association groups at once (vectorised: batched 3x3 SVDs and solves).
+    """Reference (numpy, batched 3x3 SVDs and solves) of :func:`register_batch`.
+
+    Kept as the specification of the numba path and as its fallback for numerically fragile
+    groups (rank-deficient correlations, sign or candidate ties), where only the same LAPACK
+    arithmetic reproduces the same arbitrary choice.
 
     Each group is one hypothesis. Directions and normals have no sign: each group tries the
     four sign combinations of its two most independent directions, re-assigns every sign twice
@@ -323,6 +333,682 @@ def _add_centred(cs: Array, ct: Array, cw: Array, mask: NDArray[np.bool_], ps: A
     cs[mask] = (qs / scale[:, None])[mask]
     ct[mask] = (qt / scale[:, None])[mask]
     cw[mask] = w[mask]
+
+
+# ---------------------------------------------------------------------------------------------
+# Numba path: one loop over groups, 3x3 Jacobi SVD / eigen-decompositions, no per-op overhead.
+# Every decision that the reference takes on a knife edge (rank-deficient correlation, a sign
+# dot near zero, an ambiguous seed pair, a cost tie between different solutions, a threshold
+# met within rounding) marks the group *fragile*; fragile groups are re-solved by the reference,
+# so results agree with it to rounding and arbitrary choices are the reference's own.
+
+_COND_MIN = 1e-3  # (s2 + s3) / s1 below this: the Kabsch rotation is rounding-sensitive
+_DOT_MIN = 1e-8  # |dt . R ds| below this: the sign of a direction is rounding-sensitive
+_EIG_MIN = 1e-6  # smallest / largest eigenvalue of a translation system below this: fragile
+FRAGILE_REASONS = {
+    1: "empty group", 2: "parallel-spread threshold met within rounding",
+    4: "seed pair ambiguous or all directions parallel", 8: "seed correlation is zero",
+    16: "seed sign dot near zero", 32: "correlation rank-deficient (s2 + s3 < 1e-3 s1)",
+    64: "sign dot near zero", 128: "weak-direction threshold met within rounding",
+    256: "translation system near-singular", 512: "prior translation system near-singular",
+    1024: "cost tie between different sign assignments", 2048: "rank threshold met within rounding",
+    4096: "kappa at kappa_max within rounding",
+}
+
+
+@nb.njit(cache=True)
+def _order3(x: Array, descending: bool) -> tuple[int, int, int]:
+    """Indices sorting three values (ties keep index order)."""
+    i0, i1, i2 = 0, 1, 2
+    sgn = -1.0 if descending else 1.0
+    if sgn * x[i1] < sgn * x[i0]:
+        i0, i1 = i1, i0
+    if sgn * x[i2] < sgn * x[i1]:
+        i1, i2 = i2, i1
+        if sgn * x[i1] < sgn * x[i0]:
+            i0, i1 = i1, i0
+    return i0, i1, i2
+
+
+@nb.njit(cache=True)
+def _svd3(H: Array, R: Array, S: Array, u0: Array, v0: Array, wk: Array, sig: Array) -> None:
+    """Kabsch rotation ``R`` (maps source to target), descending singular values ``S`` and the
+    leading singular pair of ``H = U diag(S) V^T`` by one-sided Jacobi (H V = U S).
+    ``wk`` (4, 3, 3) and ``sig`` (3,) are scratch."""
+    A = wk[0]
+    V = wk[1]
+    U = wk[2]
+    Vs = wk[3]
+    for i in range(3):
+        for j in range(3):
+            A[i, j] = H[i, j]
+            V[i, j] = 1.0 if i == j else 0.0
+    for _sweep in range(60):
+        rotated = False
+        for pq in range(3):
+            p = 0 if pq < 2 else 1
+            q = 1 if pq == 0 else 2
+            alpha = A[0, p] * A[0, p] + A[1, p] * A[1, p] + A[2, p] * A[2, p]
+            beta = A[0, q] * A[0, q] + A[1, q] * A[1, q] + A[2, q] * A[2, q]
+            gamma = A[0, p] * A[0, q] + A[1, p] * A[1, q] + A[2, p] * A[2, q]
+            if gamma == 0.0 or abs(gamma) <= 1e-16 * np.sqrt(alpha * beta):
+                continue
+            rotated = True
+            zeta = (beta - alpha) / (2.0 * gamma)
+            t = (1.0 if zeta >= 0 else -1.0) / (abs(zeta) + np.sqrt(1.0 + zeta * zeta))
+            c = 1.0 / np.sqrt(1.0 + t * t)
+            s = c * t
+            for i in range(3):
+                ap, aq = A[i, p], A[i, q]
+                A[i, p] = c * ap - s * aq
+                A[i, q] = s * ap + c * aq
+                vp, vq = V[i, p], V[i, q]
+                V[i, p] = c * vp - s * vq
+                V[i, q] = s * vp + c * vq
+        if not rotated:
+            break
+    for j in range(3):
+        sig[j] = np.sqrt(A[0, j] * A[0, j] + A[1, j] * A[1, j] + A[2, j] * A[2, j])
+    o0, o1, o2 = _order3(sig, True)
+    for jj in range(3):
+        j = o0 if jj == 0 else (o1 if jj == 1 else o2)
+        S[jj] = sig[j]
+        for i in range(3):
+            Vs[i, jj] = V[i, j]
+            U[i, jj] = A[i, j] / sig[j] if (jj < 2 and sig[j] > 0) else 0.0
+    U[0, 2] = U[1, 0] * U[2, 1] - U[2, 0] * U[1, 1]
+    U[1, 2] = U[2, 0] * U[0, 1] - U[0, 0] * U[2, 1]
+    U[2, 2] = U[0, 0] * U[1, 1] - U[1, 0] * U[0, 1]
+    d = (Vs[0, 0] * (Vs[1, 1] * Vs[2, 2] - Vs[2, 1] * Vs[1, 2])
+         - Vs[0, 1] * (Vs[1, 0] * Vs[2, 2] - Vs[2, 0] * Vs[1, 2])
+         + Vs[0, 2] * (Vs[1, 0] * Vs[2, 1] - Vs[2, 0] * Vs[1, 1]))
+    d = 1.0 if d >= 0 else -1.0
+    for a in range(3):
+        for b in range(3):
+            R[a, b] = Vs[a, 0] * U[b, 0] + Vs[a, 1] * U[b, 1] + d * Vs[a, 2] * U[b, 2]
+    for i in range(3):
+        u0[i] = U[i, 0]
+        v0[i] = Vs[i, 0]
+
+
+@nb.njit(cache=True)
+def _eigh3(M: Array, lam: Array, Q: Array, wk: Array, dg: Array) -> None:
+    """Ascending eigenvalues ``lam`` and eigenvectors (columns of ``Q``) of a symmetric 3x3 by
+    cyclic Jacobi. ``wk`` (4, 3, 3) and ``dg`` (3,) are scratch."""
+    a = wk[0]
+    Qw = wk[1]
+    scale = 0.0
+    for i in range(3):
+        for j in range(3):
+            a[i, j] = M[i, j]
+            Qw[i, j] = 1.0 if i == j else 0.0
+            scale += M[i, j] * M[i, j]
+    scale = np.sqrt(scale)
+    for _sweep in range(60):
+        rotated = False
+        for pq in range(3):
+            p = 0 if pq < 2 else 1
+            q = 1 if pq == 0 else 2
+            apq = a[p, q]
+            if apq == 0.0 or abs(apq) <= 1e-18 * scale:
+                continue
+            rotated = True
+            theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+            t = (1.0 if theta >= 0 else -1.0) / (abs(theta) + np.sqrt(1.0 + theta * theta))
+            c = 1.0 / np.sqrt(1.0 + t * t)
+            s = c * t
+            for k in range(3):
+                akp, akq = a[k, p], a[k, q]
+                a[k, p] = c * akp - s * akq
+                a[k, q] = s * akp + c * akq
+            for k in range(3):
+                apk, aqk = a[p, k], a[q, k]
+                a[p, k] = c * apk - s * aqk
+                a[q, k] = s * apk + c * aqk
+            for k in range(3):
+                qp, qq = Qw[k, p], Qw[k, q]
+                Qw[k, p] = c * qp - s * qq
+                Qw[k, q] = s * qp + c * qq
+        if not rotated:
+            break
+    for i in range(3):
+        dg[i] = a[i, i]
+    o0, o1, o2 = _order3(dg, False)
+    for jj in range(3):
+        j = o0 if jj == 0 else (o1 if jj == 1 else o2)
+        lam[jj] = dg[j]
+        for i in range(3):
+            Q[i, jj] = Qw[i, j]
+
+
+@nb.njit(cache=True)
+def _centred(lo: int, hi: int, mask: NDArray[np.bool_], w: Array, ps: Array, pt: Array, off: int,
+             cs: Array, ct: Array, cw: Array) -> None:
+    """As :func:`_add_centred` for one group (rows lo..hi; ``mask`` indexed from lo, ``ps``/``pt``
+    from ``off``)."""
+    ws = 0.0
+    ms = np.zeros(3)
+    mt = np.zeros(3)
+    nm = 0
+    for i in range(lo, hi):
+        if mask[i - lo]:
+            ws += w[i]
+            nm += 1
+            for a in range(3):
+                ms[a] += w[i] * ps[i - off, a]
+                mt[a] += w[i] * pt[i - off, a]
+    if ws <= 0:
+        ws = 1.0
+    for a in range(3):
+        ms[a] /= ws
+        mt[a] /= ws
+    ss = 0.0
+    for i in range(lo, hi):
+        if mask[i - lo]:
+            ss += ((ps[i - off, 0] - ms[0]) ** 2 + (ps[i - off, 1] - ms[1]) ** 2) + (ps[i - off, 2] - ms[2]) ** 2
+    scale = np.sqrt(ss / max(nm, 1)) + 1e-12
+    for i in range(lo, hi):
+        if mask[i - lo]:
+            for a in range(3):
+                cs[i - lo, a] = (ps[i - off, a] - ms[a]) / scale
+                ct[i - lo, a] = (pt[i - off, a] - mt[a]) / scale
+            cw[i - lo] = w[i]
+
+
+@nb.njit(cache=True)
+def _dot_r(R: Array, x: Array, y: Array) -> float:
+    """y . (R x)."""
+    return ((y[0] * (R[0, 0] * x[0] + R[0, 1] * x[1] + R[0, 2] * x[2])
+             + y[1] * (R[1, 0] * x[0] + R[1, 1] * x[1] + R[1, 2] * x[2]))
+            + y[2] * (R[2, 0] * x[0] + R[2, 1] * x[1] + R[2, 2] * x[2]))
+
+
+@nb.njit(cache=True)
+def _sine(c: float, sqrt_ww: float) -> float:
+    """Weighted sine of two unit directions from |cos|, as in :func:`_seed_pairs`."""
+    return np.sqrt(min(max(1.0 - c * c, 0.0), 1.0)) * sqrt_ww
+
+
+@nb.njit(cache=True)
+def _norm_cross(x: Array, y: Array) -> float:
+    c0 = x[1] * y[2] - x[2] * y[1]
+    c1 = x[2] * y[0] - x[0] * y[2]
+    c2 = x[0] * y[1] - x[1] * y[0]
+    return np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+
+
+@nb.njit(cache=True)
+def _register_kernel(bounds: NDArray[np.int64], w: Array, ts: NDArray[np.int64], ds: Array, dt: Array,
+                     bs: Array, bt: Array, parallel_spread: float, line_anchor_weight: float,
+                     weak_ratio: float, R_out: Array, t_out: Array, S_out: Array, lam_out: Array,
+                     cost_out: Array, used_pos: NDArray[np.bool_], signs_out: Array, ang_out: Array,
+                     off_out: Array, fragile: NDArray[np.int64]) -> None:
+    """Per group (rows bounds[g]..bounds[g+1] of the group-sorted inputs): the reference's
+    algorithm, writing the selected candidate's results and the group's fragility (bits of
+    :data:`FRAGILE_REASONS`, 0 when the result does not hang on rounding)."""
+    G = len(bounds) - 1
+    combos = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
+    H = np.empty((3, 3))
+    Rc = np.empty((4, 3, 3))
+    Sc = np.empty((4, 3))
+    tc = np.empty((4, 3))
+    costc = np.empty(4)
+    scalec = np.empty(4)
+    u0 = np.empty(3)
+    v0 = np.empty(3)
+    lam = np.empty(3)
+    Q = np.empty((3, 3))
+    lamf = np.empty(3)
+    Qf = np.empty((3, 3))
+    AtA_geo = np.empty((3, 3))
+    AtA = np.empty((3, 3))
+    wk = np.empty((4, 3, 3))
+    sc3 = np.empty(3)
+    inv_lam = np.empty(3)
+    inv_f = np.empty(3)
+    Atb_geo = np.empty(3)
+    Atb = np.empty(3)
+    r = np.empty(3)
+    t = np.empty(3)
+    tf = np.empty(3)
+    res = np.empty(3)
+    n_max = 0
+    for gi in range(G):
+        n_max = max(n_max, bounds[gi + 1] - bounds[gi])
+    cs = np.empty((n_max, 3))
+    ct = np.empty((n_max, 3))
+    cw = np.empty(n_max)
+    mask = np.empty(n_max, np.bool_)
+    ps = np.empty((n_max, 3))
+    pt = np.empty((n_max, 3))
+    signs = np.empty((4, n_max))
+    for gi in range(G):
+        lo = bounds[gi]
+        hi = bounds[gi + 1]
+        n = hi - lo
+        if n == 0:
+            fragile[gi] = 1
+            continue
+        frag = 0
+        n_pt = 0
+        n_line = 0
+        n_dir = 0
+        wsum = 0.0
+        for i in range(lo, hi):
+            wsum += w[i]
+            if ts[i] == 0:
+                n_pt += 1
+            else:
+                n_dir += 1
+                if ts[i] == 1:
+                    n_line += 1
+        cs[:n] = 0.0
+        ct[:n] = 0.0
+        cw[:n] = 0.0
+        if n_pt >= 3:
+            for i in range(lo, hi):
+                mask[i - lo] = ts[i] == 0
+            _centred(lo, hi, mask, w, bs, bt, 0, cs, ct, cw)
+        # parallel directions: positions of the lines across them
+        for a in range(3):
+            for b in range(3):
+                H[a, b] = 0.0
+        for i in range(lo, hi):
+            if ts[i] > 0:
+                for a in range(3):
+                    for b in range(3):
+                        H[a, b] += w[i] * ds[i, a] * ds[i, b]
+        _eigh3(H, lam, Q, wk, sc3)
+        thr = parallel_spread * max(lam[2], 1e-300)
+        parallel = lam[1] <= thr
+        used = False
+        if n_line >= 2:
+            if abs(lam[1] - thr) <= 1e-12 * lam[2]:
+                frag |= 2
+            if parallel:
+                used = True
+                ps[:n] = 0.0
+                pt[:n] = 0.0
+                for i in range(lo, hi):
+                    mask[i - lo] = ts[i] == 1
+                    if ts[i] == 1:
+                        es = (bs[i, 0] * ds[i, 0] + bs[i, 1] * ds[i, 1]) + bs[i, 2] * ds[i, 2]
+                        et = (bt[i, 0] * dt[i, 0] + bt[i, 1] * dt[i, 1]) + bt[i, 2] * dt[i, 2]
+                        for a in range(3):
+                            ps[i - lo, a] = bs[i, a] - es * ds[i, a]
+                            pt[i - lo, a] = bt[i, a] - et * dt[i, a]
+                    else:
+                        mask[i - lo] = False
+                _centred(lo, hi, mask, w, ps, pt, lo, cs, ct, cw)
+        used_pos[gi] = used
+        # seed pair: the two most independent weighted directions
+        i1 = -1
+        i2 = -1
+        if n_dir == 1:
+            for i in range(lo, hi):
+                if ts[i] > 0:
+                    i1 = i
+                    i2 = i
+        elif n_dir > 1:
+            best = -1.0
+            for i in range(lo, hi):
+                if ts[i] == 0:
+                    continue
+                for j in range(lo, hi):
+                    if ts[j] == 0:
+                        continue
+                    c = abs((ds[i, 0] * ds[j, 0] + ds[i, 1] * ds[j, 1]) + ds[i, 2] * ds[j, 2])
+                    sn = _sine(c, np.sqrt(w[i] * w[j]))
+                    if sn > best:
+                        best = sn
+                        i1 = i
+                        i2 = j
+            # Ties decide the seeds by index order: safe only when the tied sines come out the
+            # same under any rounding of the cosines (e.g. 1.0 for near-perpendicular pairs).
+            cb = abs((ds[i1, 0] * ds[i2, 0] + ds[i1, 1] * ds[i2, 1]) + ds[i1, 2] * ds[i2, 2])
+            wb = np.sqrt(w[i1] * w[i2])
+            robust_b = _sine(cb + 1e-15, wb) == best and _sine(max(cb - 1e-15, 0.0), wb) == best
+            ambiguous = best < 1e-6 * wb
+            # rounding of a cosine (< 1e-15 absolute) moves its sine by < 1e-15 / sine
+            tie = 8e-15 / max(best / wb, 1e-300) + 8e-15
+            for i in range(lo, hi):
+                if ts[i] == 0:
+                    continue
+                for j in range(i, hi):
+                    if ts[j] == 0 or (i == min(i1, i2) and j == max(i1, i2)):
+                        continue
+                    c = abs((ds[i, 0] * ds[j, 0] + ds[i, 1] * ds[j, 1]) + ds[i, 2] * ds[j, 2])
+                    wij = np.sqrt(w[i] * w[j])
+                    sn = _sine(c, wij)
+                    if best - sn <= tie * max(wb, wij) and not (
+                            robust_b and sn == best and _sine(c + 1e-15, wij) == sn
+                            and _sine(max(c - 1e-15, 0.0), wij) == sn):
+                        ambiguous = True
+            if ambiguous:
+                frag |= 4
+        signs[:, :n] = 1.0
+        if i1 >= 0:
+            for c in range(4):
+                for a in range(3):
+                    for b in range(3):
+                        H[a, b] = (combos[c, 0] * ds[i1, a] * dt[i1, b]
+                                   + combos[c, 1] * ds[i2, a] * dt[i2, b])
+                _svd3(H, Rc[c], Sc[c], u0, v0, wk, sc3)
+                if Sc[c, 0] == 0:
+                    frag |= 8
+                well = Sc[c, 1] + Sc[c, 2] >= _COND_MIN * Sc[c, 0]
+                for i in range(lo, hi):
+                    if ts[i] == 0:
+                        continue
+                    dot = _dot_r(Rc[c], ds[i], dt[i])
+                    bound = _DOT_MIN if well else _norm_cross(ds[i], u0) * _norm_cross(dt[i], v0) + _DOT_MIN
+                    if abs(dot) <= bound:
+                        frag |= 16
+                    signs[c, i - lo] = -1.0 if dot < 0 else 1.0
+        # refine: correlation of signed directions and centred positions, Kabsch, re-sign
+        for it in range(3):
+            for c in range(4):
+                for a in range(3):
+                    for b in range(3):
+                        H[a, b] = 0.0
+                for i in range(lo, hi):
+                    wd = w[i] if ts[i] > 0 else 0.0
+                    sg = signs[c, i - lo]
+                    for a in range(3):
+                        va = ds[i, a] * sg if ts[i] > 0 else 0.0
+                        for b in range(3):
+                            H[a, b] += wd * va * dt[i, b] + cw[i - lo] * cs[i - lo, a] * ct[i - lo, b]
+                _svd3(H, Rc[c], Sc[c], u0, v0, wk, sc3)
+                if not (Sc[c, 1] + Sc[c, 2] >= _COND_MIN * Sc[c, 0]) or Sc[c, 0] == 0:
+                    frag |= 32
+                if it < 2:
+                    for i in range(lo, hi):
+                        if ts[i] == 0:
+                            continue
+                        dot = _dot_r(Rc[c], ds[i], dt[i])
+                        if abs(dot) <= _DOT_MIN:
+                            frag |= 64
+                        signs[c, i - lo] = -1.0 if dot < 0 else 1.0
+        # translation: normal equations of the geometric rows (+ weak along-axis anchor prior)
+        for a in range(3):
+            for b in range(3):
+                AtA_geo[a, b] = 0.0
+                AtA[a, b] = 0.0
+        for i in range(lo, hi):
+            for a in range(3):
+                for b in range(3):
+                    ddt = dt[i, a] * dt[i, b]
+                    if ts[i] == 2:
+                        m = ddt * w[i]
+                    elif ts[i] == 1:
+                        m = ((1.0 if a == b else 0.0) - ddt) * w[i]
+                    else:
+                        m = (1.0 if a == b else 0.0) * w[i]
+                    AtA_geo[a, b] += m
+                    AtA[a, b] += m + (line_anchor_weight * w[i] if ts[i] == 1 else 0.0) * ddt
+        _eigh3(AtA_geo, lam, Q, wk, sc3)
+        lam_max = max(lam[2], 1e-300)
+        all_strong = True
+        inv_lam[:] = 0.0
+        for j in range(3):
+            if abs(lam[j] - weak_ratio * lam_max) <= 1e-12 * lam_max:
+                frag |= 128
+            if lam[j] >= weak_ratio * lam_max:
+                inv_lam[j] = 1.0 / lam[j] if lam[j] > 0 else 1.0
+            else:
+                all_strong = False
+        if lam[0] < _EIG_MIN * lam_max:
+            frag |= 256
+        for j in range(3):
+            lam_out[gi, j] = lam[j]
+        inv_f[:] = 0.0
+        if not all_strong:
+            _eigh3(AtA, lamf, Qf, wk, sc3)
+            lamf_max = max(lamf[2], 1e-300)
+            if lamf[0] < _EIG_MIN * lamf_max:
+                frag |= 512
+            for j in range(3):
+                if lamf[j] > 1e-18 * lamf_max:
+                    inv_f[j] = 1.0 / lamf[j] if lamf[j] > 0 else 1.0
+        for c in range(4):
+            R = Rc[c]
+            Atb_geo[:] = 0.0
+            Atb[:] = 0.0
+            rMr = 0.0
+            rot_res = 0.0
+            for i in range(lo, hi):
+                for a in range(3):
+                    r[a] = bt[i, a] - ((R[a, 0] * bs[i, 0] + R[a, 1] * bs[i, 1]) + R[a, 2] * bs[i, 2])
+                for a in range(3):
+                    mr = 0.0
+                    mrf = 0.0
+                    for b in range(3):
+                        ddt = dt[i, a] * dt[i, b]
+                        if ts[i] == 2:
+                            m = ddt * w[i]
+                        elif ts[i] == 1:
+                            m = ((1.0 if a == b else 0.0) - ddt) * w[i]
+                        else:
+                            m = (1.0 if a == b else 0.0) * w[i]
+                        mr += m * r[b]
+                        mrf += (m + (line_anchor_weight * w[i] if ts[i] == 1 else 0.0) * ddt) * r[b]
+                    Atb_geo[a] += mr
+                    Atb[a] += mrf
+                    rMr += r[a] * mr
+                if ts[i] > 0:
+                    rot_res += w[i] * (1.0 - abs(_dot_r(R, ds[i], dt[i])))
+            # t = Q diag(inv_lam) Q^T Atb_geo + P_weak Qf diag(inv_f) Qf^T Atb
+            t[:] = 0.0
+            for j in range(3):
+                proj = (Q[0, j] * Atb_geo[0] + Q[1, j] * Atb_geo[1]) + Q[2, j] * Atb_geo[2]
+                for a in range(3):
+                    t[a] += Q[a, j] * inv_lam[j] * proj
+            if not all_strong:
+                tf[:] = 0.0
+                for j in range(3):
+                    proj = (Qf[0, j] * Atb[0] + Qf[1, j] * Atb[1]) + Qf[2, j] * Atb[2]
+                    for a in range(3):
+                        tf[a] += Qf[a, j] * inv_f[j] * proj
+                for j in range(3):
+                    if lam[j] >= weak_ratio * lam_max:
+                        continue
+                    proj = (Q[0, j] * tf[0] + Q[1, j] * tf[1]) + Q[2, j] * tf[2]
+                    for a in range(3):
+                        t[a] += Q[a, j] * proj
+            tAt = 0.0
+            for a in range(3):
+                tAt += t[a] * ((AtA_geo[a, 0] * t[0] + AtA_geo[a, 1] * t[1]) + AtA_geo[a, 2] * t[2])
+            tres = rMr - 2.0 * ((t[0] * Atb_geo[0] + t[1] * Atb_geo[1]) + t[2] * Atb_geo[2]) + tAt
+            costc[c] = rot_res + max(tres, 0.0) / (1.0 + wsum)
+            scalec[c] = (abs(rMr) + abs(tAt)) / (1.0 + wsum)
+            for a in range(3):
+                tc[c, a] = t[a]
+        bi = 0
+        for c in range(1, 4):
+            if costc[c] + 1e-12 * c < costc[bi] + 1e-12 * bi:
+                bi = c
+        for c in range(4):
+            if c == bi:
+                continue
+            tol = 1e-10 + 1e-12 * (scalec[c] + scalec[bi])
+            if abs(costc[c] + 1e-12 * c - costc[bi] - 1e-12 * bi) <= tol:
+                for i in range(n):
+                    if signs[c, i] != signs[bi, i]:
+                        frag |= 1024
+        R = Rc[bi]
+        if abs(Sc[bi, 2] - 1e-9 * Sc[bi, 0]) <= 1e-13 * Sc[bi, 0]:
+            frag |= 2048
+        for a in range(3):
+            t_out[gi, a] = tc[bi, a]
+            S_out[gi, a] = Sc[bi, a]
+            for b in range(3):
+                R_out[gi, a, b] = R[a, b]
+        cost_out[gi] = costc[bi]
+        for i in range(lo, hi):
+            if ts[i] > 0:
+                signs_out[i] = signs[bi, i - lo]
+                cosang = min(abs(_dot_r(R, ds[i], dt[i])), 1.0)
+                ang_out[i] = np.degrees(np.arccos(cosang))
+            else:
+                signs_out[i] = 1.0
+                ang_out[i] = 0.0
+            for a in range(3):
+                res[a] = bt[i, a] - (((R[a, 0] * bs[i, 0] + R[a, 1] * bs[i, 1]) + R[a, 2] * bs[i, 2])
+                                     + tc[bi, a])
+            along = (dt[i, 0] * res[0] + dt[i, 1] * res[1]) + dt[i, 2] * res[2]
+            if ts[i] == 2:
+                off_out[i] = abs(along)
+            elif ts[i] == 1:
+                e0 = res[0] - along * dt[i, 0]
+                e1 = res[1] - along * dt[i, 1]
+                e2 = res[2] - along * dt[i, 2]
+                off_out[i] = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+            else:
+                off_out[i] = np.sqrt(res[0] * res[0] + res[1] * res[1] + res[2] * res[2])
+        fragile[gi] = frag
+
+
+def register_batch(
+    source: LandmarkSet,
+    target: LandmarkSet,
+    associations: ArrayLike,
+    groups: ArrayLike | None = None,
+    weights: ArrayLike | None = None,
+    kappa_max: float = 1e3,
+    n_groups: int | None = None,
+    parallel_spread: float = 0.03,
+    line_anchor_weight: float = 0.01,
+    weak_ratio: float = 1e-2,
+) -> BatchRegistration:
+    """Register many association groups at once (one compiled loop over groups).
+
+    Each group is one hypothesis. Directions and normals have no sign: each group tries the
+    four sign combinations of its two most independent directions, re-assigns every sign twice
+    from the refined rotation and keeps the candidate with the smallest cost. When a group's
+    directions are (nearly) parallel -- their second principal spread below ``parallel_spread``
+    of the first, e.g. vertical poles only -- the rotation about them is fixed by the lines'
+    centred positions across the common direction, which the directions alone cannot do.
+    ``line_anchor_weight`` weights the along-axis agreement of line anchors in the translation
+    (a weak prior that fixes the height of pole-only matches; 0 disables it). It acts only on
+    translation directions whose geometric eigenvalue is below ``weak_ratio`` of the largest.
+
+    Groups whose result hangs on rounding (rank-deficient correlations, near-zero sign dots,
+    ties, thresholds met within rounding, empty groups) are solved by the numpy reference, so
+    the arbitrary choices there are the same as in that (LAPACK) implementation.
+    """
+    return _register_batch_numba(source, target, associations, groups, weights, kappa_max, n_groups,
+                                 parallel_spread, line_anchor_weight, weak_ratio)[0]
+
+
+def _register_batch_numba(
+    source: LandmarkSet, target: LandmarkSet, associations: ArrayLike, groups: ArrayLike | None,
+    weights: ArrayLike | None, kappa_max: float, n_groups: int | None, parallel_spread: float,
+    line_anchor_weight: float, weak_ratio: float,
+) -> tuple[BatchRegistration, NDArray[np.int64]]:
+    """:func:`register_batch` plus each group's fragility bits (:data:`FRAGILE_REASONS`)."""
+    A = np.asarray(associations, dtype=np.int64).reshape(-1, 2)
+    k = len(A)
+    g = np.zeros(k, np.int64) if groups is None else np.asarray(groups, dtype=np.int64).reshape(-1)
+    if g.shape != (k,):
+        raise InvalidInputError(f"groups must have one entry per association ({k}), got {g.shape}")
+    if k == 0:
+        raise DegenerateGeometryError("no associations to register")
+    if g.min() < 0:
+        raise InvalidInputError("group indices must be non-negative")
+    G = int(g.max()) + 1 if n_groups is None else int(n_groups)
+    if g.max() >= G:
+        raise InvalidInputError("group index out of range")
+    if A[:, 0].max() >= len(source) or A[:, 1].max() >= len(target) or A.min() < 0:
+        raise InvalidInputError("association index out of range")
+    ts = source.types[A[:, 0]]
+    if np.any(ts != target.types[A[:, 1]]):
+        raise InvalidInputError("associations must pair landmarks of the same type")
+    w = np.ones(k) if weights is None else np.asarray(weights, dtype=float).reshape(-1)
+    if w.shape != (k,) or not np.all(np.isfinite(w)) or np.any(w < 0):
+        raise InvalidInputError("weights must be finite, non-negative, one per association")
+    wsum_g = np.bincount(g, weights=w, minlength=G)
+    if np.any((np.bincount(g, minlength=G) > 0) & (wsum_g <= 0)):
+        raise InvalidInputError("every group needs a positive weight")
+
+    order = np.argsort(g, kind="stable")
+    As, gs, ws = A[order], g[order], np.ascontiguousarray(w[order])
+    bounds = np.searchsorted(gs, np.arange(G + 1)).astype(np.int64)
+    R = np.empty((G, 3, 3))
+    t = np.empty((G, 3))
+    S = np.zeros((G, 3))
+    lam = np.zeros((G, 3))
+    cost = np.zeros(G)
+    used_pos = np.zeros(G, np.bool_)
+    signs = np.empty(k)
+    ang = np.empty(k)
+    off = np.empty(k)
+    reasons = np.zeros(G, np.int64)
+    _register_kernel(
+        bounds, ws, ts[order].astype(np.int64),
+        np.ascontiguousarray(source.directions[As[:, 0]], dtype=np.float64),
+        np.ascontiguousarray(target.directions[As[:, 1]], dtype=np.float64),
+        np.ascontiguousarray(source.anchors[As[:, 0]], dtype=np.float64),
+        np.ascontiguousarray(target.anchors[As[:, 1]], dtype=np.float64),
+        float(parallel_spread), float(line_anchor_weight), float(weak_ratio),
+        R, t, S, lam, cost, used_pos, signs, ang, off, reasons,
+    )
+    tol = 1e-9
+    S0 = np.maximum(S[:, 0], 1e-300)
+    rot_rank = np.sum(S > tol * S0[:, None], axis=1) * (S[:, 0] > 0)
+    k_rot = np.where(S[:, 1] > tol * S0, S[:, 0] / np.where(S[:, 1] > 0, S[:, 1], 1.0), np.inf)
+    sv = np.sqrt(np.clip(lam[:, ::-1], 0, None))
+    sv0 = np.maximum(sv[:, 0], 1e-300)
+    tr_rank = np.sum(sv > tol * sv0[:, None], axis=1) * (sv[:, 0] > 0)
+    k_tr = np.where(sv[:, 2] > tol * sv0, sv[:, 0] / np.where(sv[:, 2] > 0, sv[:, 2], 1.0), np.inf)
+    kappa = np.maximum(k_rot, k_tr)
+    reasons |= np.where(np.abs(kappa - kappa_max) <= 1e-8 * abs(kappa_max), 4096, 0)
+    fragile = reasons != 0
+    T = np.tile(np.eye(4), (G, 1, 1))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = t
+    inv = np.empty(k, np.int64)
+    inv[order] = np.arange(k)
+    out = BatchRegistration(
+        T_target_source=T, kappa=kappa, kappa_rotation=k_rot, kappa_translation=k_tr,
+        degenerate=~np.isfinite(kappa) | (kappa > kappa_max),
+        rotation_rank=rot_rank.astype(np.int64), translation_rank=tr_rank.astype(np.int64),
+        cost=cost, used_line_positions=used_pos,
+        angle_residuals_deg=ang[inv], offset_residuals=off[inv], signs=signs[inv],
+    )
+    if fragile.any():
+        _solve_by_reference(out, source, target, A, g, w, G, fragile, kappa_max,
+                            parallel_spread, line_anchor_weight, weak_ratio)
+    return out, reasons
+
+
+def _solve_by_reference(out: BatchRegistration, source: LandmarkSet, target: LandmarkSet,
+                        A: NDArray[np.int64], g: NDArray[np.int64], w: Array, G: int,
+                        fragile: NDArray[np.bool_], kappa_max: float, parallel_spread: float,
+                        line_anchor_weight: float, weak_ratio: float) -> None:
+    """Overwrite the fragile groups of ``out`` with the reference's results for them alone
+    (groups are independent, so a subset gives each group the same result)."""
+    count = np.bincount(g, minlength=G)
+    empty = fragile & (count == 0)
+    if empty.any():  # what the reference yields for a group without associations
+        out.T_target_source[empty] = np.eye(4)
+        out.kappa[empty] = out.kappa_rotation[empty] = out.kappa_translation[empty] = np.inf
+        out.degenerate[empty] = True
+        out.rotation_rank[empty] = out.translation_rank[empty] = 0
+        out.cost[empty] = 0.0
+        out.used_line_positions[empty] = False
+    redo = np.flatnonzero(fragile & (count > 0))
+    if not len(redo):
+        return
+    remap = np.full(G, -1, np.int64)
+    remap[redo] = np.arange(len(redo))
+    rows = np.flatnonzero(remap[g] >= 0)
+    sub = _register_batch_reference(source, target, A[rows], remap[g[rows]], w[rows], kappa_max,
+                                    len(redo), parallel_spread, line_anchor_weight, weak_ratio)
+    for name in ("T_target_source", "kappa", "kappa_rotation", "kappa_translation", "degenerate",
+                 "rotation_rank", "translation_rank", "cost", "used_line_positions"):
+        getattr(out, name)[redo] = getattr(sub, name)
+    for name in ("angle_residuals_deg", "offset_residuals", "signs"):
+        getattr(out, name)[rows] = getattr(sub, name)
 
 
 def register_landmarks(

@@ -1,0 +1,221 @@
+"""register_batch (numba) against the numpy reference: same transforms, conditioning and residuals.
+
+Tolerances: 1e-9, relative to the size of the numbers compared (a transform's translation,
+anchors of tens of metres); kappa relative 1e-9 with inf kept inf. Angle residuals agree to
+1e-9 degrees or their cosines to 1e-13: arccos turns a one-ulp difference of a cosine near 1
+into up to 1e-6 degrees (small angles), which no two implementations (or LAPACK builds) share.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from graffmatch.datasets.landmark_scene import make_scene_pair
+from graffmatch.errors import DegenerateGeometryError, InvalidInputError
+from graffmatch.geometry.landmarks import LandmarkSet
+from graffmatch.geometry.transforms import random_transform
+from graffmatch.registration import closed_form as cf
+
+SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def assert_same(new: cf.BatchRegistration, ref: cf.BatchRegistration, source: LandmarkSet,
+                target: LandmarkSet, A: np.ndarray, g: np.ndarray) -> None:
+    G = len(ref)
+    assert len(new) == G
+    for name in ("degenerate", "rotation_rank", "translation_rank", "used_line_positions"):
+        np.testing.assert_array_equal(getattr(new, name), getattr(ref, name), err_msg=name)
+    np.testing.assert_array_equal(new.signs, ref.signs)
+    for name in ("kappa", "kappa_rotation", "kappa_translation"):
+        a, b = getattr(new, name), getattr(ref, name)
+        np.testing.assert_array_equal(np.isinf(a), np.isinf(b), err_msg=name)
+        fin = np.isfinite(b)
+        np.testing.assert_allclose(a[fin], b[fin], rtol=1e-9, atol=0, err_msg=name)
+    # scale of the numbers each group's results are made of: anchors and translation
+    anchors = np.maximum(np.abs(source.anchors[A[:, 0]]).max(1), np.abs(target.anchors[A[:, 1]]).max(1))
+    scale = np.ones(G)
+    np.maximum.at(scale, g, anchors)
+    scale = scale + np.abs(ref.T_target_source[:, :3, 3]).max(1)
+    np.testing.assert_allclose(new.T_target_source[:, :3, :3], ref.T_target_source[:, :3, :3],
+                               rtol=0, atol=1e-9)
+    dt = np.abs(new.T_target_source[:, :3, 3] - ref.T_target_source[:, :3, 3]).max(1)
+    assert np.all(dt <= 1e-9 * scale), (dt / scale).max()
+    dc = np.abs(new.cost - ref.cost)
+    assert np.all(dc <= 1e-9 + 1e-12 * scale**2), dc.max()
+    do = np.abs(new.offset_residuals - ref.offset_residuals)
+    assert np.all(do <= 1e-9 * scale[g]), (do / scale[g]).max()
+    a, b = new.angle_residuals_deg, ref.angle_residuals_deg
+    close = np.abs(a - b) <= 1e-9
+    same_cos = np.abs(np.cos(np.radians(a)) - np.cos(np.radians(b))) <= 1e-13
+    assert np.all(close | same_cos), (a[~(close | same_cos)], b[~(close | same_cos)])
+
+
+def both(source, target, A, g, w=None, n_groups=None, **kw):
+    new, reasons = cf._register_batch_numba(
+        source, target, A, g, w, kw.get("kappa_max", 1e3), n_groups, 0.03, 0.01, 1e-2)
+    ref = cf._register_batch_reference(source, target, A, g, w, kw.get("kappa_max", 1e3), n_groups)
+    assert_same(new, ref, source, target, np.asarray(A).reshape(-1, 2), np.asarray(g))
+    assert_same(cf.register_batch(source, target, A, g, w, kw.get("kappa_max", 1e3), n_groups),
+                ref, source, target, np.asarray(A).reshape(-1, 2), np.asarray(g))
+    return reasons
+
+
+def random_groups(rng, k_total_max, sizes_max, G):
+    sizes = rng.integers(1, sizes_max + 1, G)
+    return sizes[np.cumsum(sizes) <= k_total_max] if sizes[0] <= k_total_max else sizes[:1]
+
+
+def same_type_pairs(rng, source, target, k, true_matches=None, p_true=0.7):
+    """k associations: true matches (if any) mixed with random same-type pairs."""
+    out = []
+    for _ in range(k):
+        if true_matches is not None and len(true_matches) and rng.random() < p_true:
+            out.append(true_matches[rng.integers(len(true_matches))])
+            continue
+        i = rng.integers(len(source))
+        cand = np.flatnonzero(target.types == source.types[i])
+        if len(cand) == 0:
+            continue
+        out.append([i, cand[rng.integers(len(cand))]])
+    return np.array(out, np.int64).reshape(-1, 2)
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), noise=st.sampled_from([0.0, 0.5, 1.0]),
+       n_outliers=st.sampled_from([0, 5]), G=st.integers(1, 40), max_size=st.sampled_from([2, 8, 40]),
+       p_true=st.sampled_from([1.0, 0.7, 0.3]), weighted=st.booleans(), extra_groups=st.integers(0, 2))
+def test_street_scenes(seed, noise, n_outliers, G, max_size, p_true, weighted, extra_groups):
+    sc = make_scene_pair(10, 20, seed=seed % 1000, anchor_noise=0.05 * noise, angle_noise_deg=noise,
+                         n_outliers=n_outliers)
+    rng = np.random.default_rng(seed)
+    sizes = rng.integers(1, max_size + 1, G)
+    A = np.concatenate([same_type_pairs(rng, sc.source, sc.target, s, sc.true_matches, p_true)
+                        for s in sizes])
+    g = np.repeat(np.arange(G), sizes)[: len(A)]
+    if rng.random() < 0.5:  # groups need not be contiguous
+        perm = rng.permutation(len(A))
+        A, g = A[perm], g[perm]
+    w = None
+    if weighted:
+        w = rng.uniform(0, 3, len(A)) * (rng.random(len(A)) > 0.2)
+        w[np.unique(g, return_index=True)[1]] += 0.1  # every group keeps a positive weight
+    both(sc.source, sc.target, A, g, w, n_groups=int(g.max()) + 1 + extra_groups)
+
+
+def _random_set(rng, n, types):
+    dirs = rng.normal(size=(n, 3))
+    return LandmarkSet.from_arrays(types, dirs, rng.uniform(-30, 30, (n, 3)))
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), kinds=st.sampled_from(["mixed", "points", "lines", "planes"]),
+       G=st.integers(1, 30), max_size=st.sampled_from([1, 2, 3, 10, 40]),
+       noise=st.sampled_from([0.0, 1e-3, 0.05]))
+def test_random_landmark_sets(seed, kinds, G, max_size, noise):
+    rng = np.random.default_rng(seed)
+    n = 40
+    types = {"mixed": rng.integers(0, 3, n), "points": np.zeros(n, int), "lines": np.ones(n, int),
+             "planes": np.full(n, 2)}[kinds]
+    tgt = _random_set(rng, n, types)
+    T = random_transform(rng, 20.0)
+    src = tgt.transform(np.linalg.inv(T))
+    if noise:
+        src = LandmarkSet.from_arrays(src.types, src.directions + rng.normal(0, noise, (n, 3)),
+                                      src.anchors + rng.normal(0, noise, (n, 3)))
+    flips = rng.choice([-1.0, 1.0], n)
+    src = LandmarkSet.from_arrays(src.types, src.directions * flips[:, None], src.anchors)
+    true = np.stack([np.arange(n)] * 2, 1)
+    sizes = rng.integers(1, max_size + 1, G)
+    A = np.concatenate([same_type_pairs(rng, src, tgt, s, true, 0.8) for s in sizes])
+    g = np.repeat(np.arange(G), sizes)
+    both(src, tgt, A, g)
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), n_poles=st.integers(1, 12), tilt=st.sampled_from([0.0, 1e-9, 0.01]),
+       with_points=st.booleans(), with_plane=st.booleans())
+def test_parallel_poles_and_point_groups(seed, n_poles, tilt, with_points, with_plane):
+    """Vertical poles only (positions fix the yaw), exactly or nearly parallel; points-only groups."""
+    rng = np.random.default_rng(seed)
+    dirs = np.tile([0.0, 0.0, 1.0], (n_poles, 1)) + rng.normal(0, tilt, (n_poles, 3))
+    anchors = np.c_[rng.uniform(-20, 20, (n_poles, 2)), rng.uniform(0, 3, n_poles)]
+    types = [1] * n_poles
+    if with_points:
+        dirs = np.r_[dirs, np.zeros((5, 3))]
+        anchors = np.r_[anchors, rng.uniform(-10, 10, (5, 3))]
+        types += [0] * 5
+    if with_plane:
+        dirs = np.r_[dirs, [[0.0, 0.0, 1.0]]]
+        anchors = np.r_[anchors, [[0.0, 0.0, 0.0]]]
+        types += [2]
+    tgt = LandmarkSet.from_arrays(np.array(types), dirs, anchors)
+    T = random_transform(rng, 15.0)
+    src = tgt.transform(np.linalg.inv(T))
+    n = len(tgt)
+    idx = np.arange(n)
+    poles = idx[:n_poles]
+    groups = [poles, poles[: 2], poles[:1], poles[::-1]]
+    if with_points:
+        pts = idx[n_poles:n_poles + 5]
+        groups += [pts, pts[:3], pts[:2], np.r_[poles[:1], pts[:3]]]
+    if with_plane:
+        groups += [np.r_[poles, n - 1], np.array([n - 1])]
+    A = np.concatenate([np.stack([gr, gr], 1) for gr in groups])
+    g = np.concatenate([np.full(len(gr), i) for i, gr in enumerate(groups)])
+    both(src, tgt, A, g)
+
+
+def test_fast_path_covers_noisy_street_hypotheses():
+    """Realistic groups (noisy street scene, 8 true matches) never need the reference."""
+    sc = make_scene_pair(15, 30, seed=3)
+    rng = np.random.default_rng(3)
+    A = np.concatenate([sc.true_matches[rng.choice(len(sc.true_matches), 8, replace=False)]
+                        for _ in range(200)])
+    g = np.repeat(np.arange(200), 8)
+    reasons = both(sc.source, sc.target, A, g)
+    assert np.count_nonzero(reasons) <= 4
+
+
+def test_fragile_groups_are_solved_by_the_reference():
+    """Exactly parallel poles without positions, a single plane and an empty group are fragile."""
+    rng = np.random.default_rng(0)
+    tgt = LandmarkSet.from_arrays(np.array([1, 1, 2, 2]), np.tile([0.0, 0.0, 1.0], (4, 1)),
+                                  rng.uniform(-5, 5, (4, 3)))
+    A = np.array([[0, 0], [1, 1], [2, 2], [2, 2], [3, 3]])
+    g = np.array([0, 0, 1, 2, 2])
+    reasons = both(tgt, tgt, A, g, n_groups=4)
+    assert reasons[3] == 1 and np.all(reasons[1:] != 0)
+
+
+@pytest.mark.parametrize("case", ["empty", "bad_group", "neg_group", "index", "type", "weight", "zero_weight"])
+def test_errors_match_the_reference(case):
+    ls = LandmarkSet.from_arrays(np.array([2, 1]), np.array([[0, 0, 1.0], [1, 0, 0]]), np.zeros((2, 3)))
+    args = {
+        "empty": (np.zeros((0, 2), int), None, None, None),
+        "bad_group": ([[0, 0], [1, 1]], [0], None, None),
+        "neg_group": ([[0, 0], [1, 1]], [0, -1], None, None),
+        "index": ([[0, 0], [1, 5]], None, None, None),
+        "type": ([[0, 1]], None, None, None),
+        "weight": ([[0, 0], [1, 1]], None, [1.0, np.nan], None),
+        "zero_weight": ([[0, 0], [1, 1]], [0, 1], [1.0, 0.0], None),
+    }[case]
+    errs = []
+    for f in (cf.register_batch, cf._register_batch_reference):
+        with pytest.raises((InvalidInputError, DegenerateGeometryError)) as info:
+            f(ls, ls, args[0], args[1], args[2])
+        errs.append((type(info.value), str(info.value)))
+    assert errs[0] == errs[1]
+    with pytest.raises(InvalidInputError):
+        cf.register_batch(ls, ls, [[0, 0], [1, 1]], [0, 3], None, 1e3, 2)
+
+
+def test_deterministic():
+    sc = make_scene_pair(10, 20, seed=1)
+    A = np.concatenate([sc.true_matches] * 3)
+    g = np.repeat(np.arange(3), len(sc.true_matches))
+    a, b = cf.register_batch(sc.source, sc.target, A, g), cf.register_batch(sc.source, sc.target, A, g)
+    for name in ("T_target_source", "kappa", "cost", "offset_residuals", "signs"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
