@@ -524,6 +524,19 @@ def _dot_r(R: Array, x: Array, y: Array) -> float:
 
 
 @nb.njit(cache=True)
+def _same_row(ds: Array, w: Array, i: int, j: int) -> bool:
+    return w[i] == w[j] and ds[i, 0] == ds[j, 0] and ds[i, 1] == ds[j, 1] and ds[i, 2] == ds[j, 2]
+
+
+@nb.njit(cache=True)
+def _same_pair(ds: Array, w: Array, i: int, j: int, a: int, b: int) -> bool:
+    """Pairs (i, j) and (a, b) of bitwise equal directions and weights: every implementation
+    computes the same sine for both, so their tie is broken by index order alike."""
+    return ((_same_row(ds, w, i, a) and _same_row(ds, w, j, b))
+            or (_same_row(ds, w, i, b) and _same_row(ds, w, j, a)))
+
+
+@nb.njit(cache=True)
 def _sine(c: float, sqrt_ww: float) -> float:
     """Weighted sine of two unit directions from |cos|, as in :func:`_seed_pairs`."""
     return np.sqrt(min(max(1.0 - c * c, 0.0), 1.0)) * sqrt_ww
@@ -664,7 +677,8 @@ def _register_kernel(bounds: NDArray[np.int64], w: Array, ts: NDArray[np.int64],
                         i1 = i
                         i2 = j
             # Ties decide the seeds by index order: safe only when the tied sines come out the
-            # same under any rounding of the cosines (e.g. 1.0 for near-perpendicular pairs).
+            # same under any rounding of the cosines (e.g. 1.0 for near-perpendicular pairs) or
+            # come from the same two directions (a landmark associated twice).
             cb = abs((ds[i1, 0] * ds[i2, 0] + ds[i1, 1] * ds[i2, 1]) + ds[i1, 2] * ds[i2, 2])
             wb = np.sqrt(w[i1] * w[i2])
             robust_b = _sine(cb + 1e-15, wb) == best and _sine(max(cb - 1e-15, 0.0), wb) == best
@@ -681,8 +695,9 @@ def _register_kernel(bounds: NDArray[np.int64], w: Array, ts: NDArray[np.int64],
                     wij = np.sqrt(w[i] * w[j])
                     sn = _sine(c, wij)
                     if best - sn <= tie * max(wb, wij) and not (
-                            robust_b and sn == best and _sine(c + 1e-15, wij) == sn
-                            and _sine(max(c - 1e-15, 0.0), wij) == sn):
+                            sn == best and (_same_pair(ds, w, i, j, i1, i2) or (
+                                robust_b and _sine(c + 1e-15, wij) == sn
+                                and _sine(max(c - 1e-15, 0.0), wij) == sn))):
                         ambiguous = True
             if ambiguous:
                 frag |= 4
