@@ -391,7 +391,7 @@ def _svd3(H: Array, R: Array, S: Array, u0: Array, v0: Array, wk: Array, sig: Ar
             alpha = A[0, p] * A[0, p] + A[1, p] * A[1, p] + A[2, p] * A[2, p]
             beta = A[0, q] * A[0, q] + A[1, q] * A[1, q] + A[2, q] * A[2, q]
             gamma = A[0, p] * A[0, q] + A[1, p] * A[1, q] + A[2, p] * A[2, q]
-            if gamma == 0.0 or abs(gamma) <= 1e-16 * np.sqrt(alpha * beta):
+            if gamma == 0.0 or abs(gamma) <= 1e-15 * np.sqrt(alpha * beta):
                 continue
             rotated = True
             zeta = (beta - alpha) / (2.0 * gamma)
@@ -465,6 +465,8 @@ def _eigh3(M: Array, lam: Array, Q: Array, wk: Array, dg: Array) -> None:
                 apk, aqk = a[p, k], a[q, k]
                 a[p, k] = c * apk - s * aqk
                 a[q, k] = s * apk + c * aqk
+            a[p, q] = 0.0
+            a[q, p] = 0.0
             for k in range(3):
                 qp, qq = Qw[k, p], Qw[k, q]
                 Qw[k, p] = c * qp - s * qq
@@ -595,6 +597,8 @@ def _register_kernel(bounds: NDArray[np.int64], w: Array, ts: NDArray[np.int64],
     ps = np.empty((n_max, 3))
     pt = np.empty((n_max, 3))
     signs = np.empty((4, n_max))
+    prev = np.empty((4, n_max))
+    dup = np.empty(4, np.int64)
     for gi in range(G):
         lo = bounds[gi]
         hi = bounds[gi + 1]
@@ -721,8 +725,25 @@ def _register_kernel(bounds: NDArray[np.int64], w: Array, ts: NDArray[np.int64],
                         frag |= 16
                     signs[c, i - lo] = -1.0 if dot < 0 else 1.0
         # refine: correlation of signed directions and centred positions, Kabsch, re-sign
+        # (candidates whose signs coincide share the result: copied, not recomputed)
         for it in range(3):
+            prev[:, :n] = signs[:, :n]
             for c in range(4):
+                dup[c] = -1
+                for c2 in range(c):
+                    same = True
+                    for i in range(n):
+                        if prev[c2, i] != prev[c, i]:
+                            same = False
+                            break
+                    if same:
+                        dup[c] = c2
+                        break
+                if dup[c] >= 0:
+                    Rc[c] = Rc[dup[c]]
+                    Sc[c] = Sc[dup[c]]
+                    signs[c, :n] = signs[dup[c], :n]
+                    continue
                 for a in range(3):
                     for b in range(3):
                         H[a, b] = 0.0
@@ -786,6 +807,11 @@ def _register_kernel(bounds: NDArray[np.int64], w: Array, ts: NDArray[np.int64],
                 if lamf[j] > 1e-18 * lamf_max:
                     inv_f[j] = 1.0 / lamf[j] if lamf[j] > 0 else 1.0
         for c in range(4):
+            if dup[c] >= 0:
+                costc[c] = costc[dup[c]]
+                scalec[c] = scalec[dup[c]]
+                tc[c] = tc[dup[c]]
+                continue
             R = Rc[c]
             Atb_geo[:] = 0.0
             Atb[:] = 0.0
