@@ -20,7 +20,8 @@ all planes parallel or all lines parallel.
 Implementation: :func:`register_batch` runs one compiled loop over the groups (3x3 Jacobi SVDs
 and eigen-decompositions, no per-operation overhead); :func:`_register_batch_reference` is the
 batched numpy specification it is tested against, and it re-solves the few groups whose result
-hangs on rounding (see :data:`FRAGILE_REASONS`).
+hangs on rounding (see :data:`FRAGILE_REASONS`). The module runs past 500 lines for that
+reason: the compiled kernel and the reference it falls back to must stay side by side.
 """
 
 from __future__ import annotations

@@ -48,7 +48,7 @@ def test_planted_scenes_are_valid_and_right_with_rival_reported():
         assert res.valid, res.message
         r, t = transform_errors(res.T_target_source, sc.T_target_source)
         assert r < 1.0 and t < 0.5
-        assert res.confidence > 0.9 and 0.0 < res.margin <= 1.0 and res.overlap > 0.5
+        assert res.confidence > 0.9 and 0.0 < res.margin <= 1.0 and res.overlap > 0.3
         assert len(res.hypotheses) >= 2 and res.runner_up is not None
         assert res.runner_up.score < res.overlap
         d = res.to_dict()
