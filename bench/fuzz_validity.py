@@ -64,7 +64,11 @@ def main() -> None:
     examples = []
     t0 = time.perf_counter()
     for i in range(a.n):
-        src, tgt, T, kind = case(rng)
+        try:
+            src, tgt, T, kind = case(rng)
+        except GraffMatchError:  # the generator's own arguments rejected (e.g. no landmark)
+            stats.setdefault("rejected-input", Counter())["inputs"] += 1
+            continue
         c = stats.setdefault(kind, Counter())
         c["inputs"] += 1
         try:

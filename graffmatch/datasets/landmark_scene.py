@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from graffmatch.errors import InvalidInputError
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.geometry.transforms import invert, make_transform, rot_z
 
@@ -112,6 +113,13 @@ def make_scene_pair(
     The target frame is the world frame; the source frame is moved by ``yaw_deg`` and
     ``translation``, so ``T_target_source`` is that pose.
     """
+    if n_poles < 0 or n_planes < 0 or n_poles + n_planes < 1 or n_outliers < 0:
+        raise InvalidInputError(
+            f"need n_poles, n_planes, n_outliers >= 0 and at least one landmark, got "
+            f"{n_poles}, {n_planes}, {n_outliers}"
+        )
+    if not 0.0 < overlap <= 1.0:
+        raise InvalidInputError(f"overlap must be in (0, 1], got {overlap}")
     rng = np.random.default_rng(seed)
     world = street_world(n_poles, n_planes, rng)
     n = len(world)
@@ -119,7 +127,7 @@ def make_scene_pair(
     views = []
     keep_sets = []
     for _ in range(2):
-        keep = np.sort(rng.choice(n, size=round(overlap * n), replace=False))
+        keep = np.sort(rng.choice(n, size=max(1, round(overlap * n)), replace=False))
         ground = n - 1  # the ground plane is last and always seen
         if ground not in keep:
             keep[0] = ground
