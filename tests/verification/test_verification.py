@@ -157,3 +157,26 @@ def test_two_true_landmarks_and_outliers_are_not_valid():
         src = LandmarkSet.concatenate([src[:2], out])
         res = GraffMatcher().match(src, tgt)
         assert not (res.valid and _wrong(res, T))
+
+
+@pytest.mark.slow
+def test_residual_gate_cannot_turn_a_right_answer_into_a_wrong_one(tmp_path):
+    """Issue 13's case: simulated suburban seed 2, scans 0 and 5 with labels, the source moved by
+    180 deg and 10 m. The old gate dropped the poles and both x-facing walls and re-registered to
+    180 deg / 21.9 m, reported valid. Gated and ungated variants now both face the evidence."""
+    from graffmatch.datasets.folder import KittiFolder
+    from graffmatch.datasets.simulator import simulate_dataset
+    from graffmatch.lidar.extractor import LandmarkExtractor
+
+    raw = simulate_dataset(tmp_path / "sub", style="suburban", seed=2, n_scans=6, realism="ideal")
+    ds = KittiFolder(raw)
+    ex = LandmarkExtractor()
+    tgt = ex.extract(ds[0].points, ds[0].labels)
+    src0 = ex.extract(ds[5].points, ds[5].labels)
+    move = make_transform(rot_z(np.pi), [10.0, 0.0, 0.0])  # source frame moved: p_new = move @ p_old
+    src = src0.transform(move)
+    T_true = invert(ds.poses[0]) @ ds.poses[5] @ invert(move)
+    res = GraffMatcher().match(src, tgt)
+    r, t = transform_errors(res.T_target_source, T_true)
+    assert not (res.valid and (r > ROT_OK or t > TRANS_OK)), (r, t, res.message)
+    assert res.valid and r < 1.0 and t < 0.5, (r, t, res.message)
