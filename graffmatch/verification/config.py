@@ -62,7 +62,7 @@ class VerificationConfig(BaseModel):
         6, ge=1, description="without support points: fewest landmarks that must land on a counterpart"
     )
     confidence_coef: tuple[float, float, float] = Field(
-        (-7.163, 29.995, 1.798),
+        (-7.722, 30.183, 2.677),
         description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio)), fitted on "
         "the calibration split of bench/verification.py",
     )
