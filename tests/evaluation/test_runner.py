@@ -187,7 +187,8 @@ def test_gt_matches_method_registers_exactly(tmp_path: Path) -> None:
     for r in load_records(out):
         assert r["method"] == GT_METHOD
         assert r["status"] == "ok", r["error"]
-        assert r["success"] and r["rotation_error_deg"] < 1e-6 and r["translation_error_m"] < 1e-6
+        # arccos near 1 resolves angles to ~2.6e-6 deg: one last-bit difference in R shows up there
+        assert r["success"] and r["rotation_error_deg"] < 1e-5 and r["translation_error_m"] < 1e-6
         assert r["oir"] == 1.0
 
 
