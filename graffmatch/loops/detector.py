@@ -22,8 +22,9 @@ from graffmatch.lidar.extractor import LandmarkExtractor, LandmarkExtractorConfi
 from graffmatch.loops.database import LandmarkDatabase
 from graffmatch.loops.descriptor import DescriptorConfig, landmark_descriptor
 from graffmatch.loops.retrieval import RetrievalConfig, eligible_count, make_retriever
-from graffmatch.loops.verify import LoopClosure, VerificationConfig, make_matcher, verify_candidate
+from graffmatch.loops.verify import LoopClosure, VerificationConfig, verify_candidate
 from graffmatch.matcher import GraffMatchConfig
+from graffmatch.pipeline import ScanMatcher, ScanMatcherConfig
 
 
 class LoopDetectorConfig(BaseModel):
@@ -46,15 +47,17 @@ class LoopDetector:
         self.config = config or LoopDetectorConfig()
         self.db = LandmarkDatabase()
         self.retriever = make_retriever(self.config.retrieval)
-        self.matcher = make_matcher(self.config.matcher)
-        self._extractor: LandmarkExtractor | None = None
+        # One configured scan-to-scan path (graffmatch.pipeline.ScanMatcher): the same extractor
+        # and verified matcher as register_scans, the CLI, the demo and the evaluation.
+        self.scan_matcher = ScanMatcher(
+            ScanMatcherConfig(extractor=self.config.extractor, matcher=self.config.matcher)
+        )
+        self.matcher = self.scan_matcher
         self.timings: dict[str, list[float]] = {"extract": [], "retrieve": [], "verify": []}
 
     @property
     def extractor(self) -> LandmarkExtractor:
-        if self._extractor is None:
-            self._extractor = LandmarkExtractor(self.config.extractor)
-        return self._extractor
+        return self.scan_matcher.extractor
 
     def prepare(self, landmarks: LandmarkSet) -> tuple[LandmarkSet, NDArray[np.float32]]:
         """The stored landmark map (most salient per type) and its descriptor."""

@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from graffmatch.errors import GraffMatchError
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.matcher import GraffMatchConfig, GraffMatcher
+from graffmatch.pipeline import ScanMatcher, ScanMatcherConfig
 
 
 class VerificationConfig(BaseModel):
@@ -112,7 +113,7 @@ def landmark_agreement(
 def verify_candidate(
     query: LandmarkSet,
     candidate: LandmarkSet,
-    matcher: GraffMatcher,
+    matcher: GraffMatcher | ScanMatcher,
     config: VerificationConfig,
 ) -> dict:
     """Match ``query`` (source) to ``candidate`` (target) and score the estimate.
@@ -163,5 +164,6 @@ def verify_candidate(
     return out
 
 
-def make_matcher(config: GraffMatchConfig | None) -> GraffMatcher:
-    return GraffMatcher(config)
+def make_matcher(config: GraffMatchConfig | None) -> ScanMatcher:
+    """The verified matcher of the one scan-to-scan path (``graffmatch.pipeline.ScanMatcher``)."""
+    return ScanMatcher(ScanMatcherConfig(matcher=config or GraffMatchConfig()))
