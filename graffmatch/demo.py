@@ -86,7 +86,7 @@ class DemoReport:
         if self.landmark_only_errors is not None:
             r0, t0 = self.landmark_only_errors
             t.add_row("landmark registration error", f"{r0:.3f}°, {t0:.3f} m (before ICP)")
-            t.add_row("ICP on matched landmarks' points", f"fitness {self.icp_fitness:.2f}")
+            t.add_row("ICP on the scans (ground removed)", f"fitness {self.icp_fitness:.2f}")
         t.add_row("rotation error", f"{self.rotation_error_deg:.3f}°  (bound {self.bounds[0]}°)")
         t.add_row("translation error", f"{self.translation_error_m:.3f} m  (bound {self.bounds[1]} m)")
         for k, v in self.timings.items():
