@@ -67,7 +67,7 @@ def occupancy_overlap(
             t = -np.einsum("hij,hj->hi", R, Ts[:, :3, 3])
         else:
             R, t = T[:, :3, :3], T[:, :3, 3]
-        q = np.einsum("hij,nj->hni", R, P) + t[:, None, :]
+        q = P @ np.swapaxes(R, 1, 2) + t[:, None, :]  # (H, n, 3); matmul is ~3x faster than einsum here
         keys, inside = _voxel_keys(q, voxel)
         occ = b.occupied(voxel)
         pos = np.searchsorted(occ, keys)
@@ -193,8 +193,9 @@ def landmark_overlap(
             counts.append(np.zeros(len(Ts), np.int64))
         return out[0] if single else out
     R, t = Ts[:, :3, :3], Ts[:, :3, 3]
-    ds = np.einsum("hij,nj->hni", R, src.directions)  # (H, ns, 3)
-    bs = np.einsum("hij,nj->hni", R, src.anchors) + t[:, None, :]
+    Rt = np.swapaxes(R, 1, 2)
+    ds = src.directions @ Rt  # (H, ns, 3)
+    bs = src.anchors @ Rt + t[:, None, :]
     dt, bt = tgt.directions, tgt.anchors
     same = (src.types[:, None] == tgt.types[None, :])[None]
     cosang = np.abs(np.einsum("hsi,ti->hst", ds, dt))
