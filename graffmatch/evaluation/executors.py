@@ -13,8 +13,8 @@ Engines:
   scheduler (a cluster started with ``dask scheduler`` / ``dask worker`` or dask-jobqueue);
   without an address it starts a :class:`distributed.LocalCluster` of N single-threaded worker
   processes and closes it afterwards. Dask re-runs tasks of a worker that died.
-* ``ray``: Ray (``ray.init(address=...)``). Ray is an optional dependency that is *not*
-  installed with graffmatch; selecting it without Ray raises :class:`ExecutorUnavailableError`
+* ``ray``: Ray (``ray.init(address=...)``). Ray is the optional extra ``graffmatch[ray]`` (``make
+  test`` installs it); selecting it without Ray raises :class:`ExecutorUnavailableError`
   with the pip command to fix it.
 
 Only a bounded number of tasks is in flight at a time (``max_in_flight``) so that a study of
@@ -255,7 +255,7 @@ class DaskExecutor(_ClosesOnExit):
 
 
 class RayExecutor(_ClosesOnExit):
-    """Ray (optional, not installed by default): ``ray.init(address)`` and ``ray.wait``."""
+    """Ray (the optional extra ``graffmatch[ray]``): ``ray.init(address)`` and ``ray.wait``."""
 
     name = "ray"
 
@@ -267,8 +267,7 @@ class RayExecutor(_ClosesOnExit):
     ) -> None:
         ray = _require(
             "ray",
-            "the ray executor needs Ray, which graffmatch does not install: "
-            "pip install 'ray[default]' (or use --executor dask)",
+            "the ray executor needs Ray: pip install 'graffmatch[ray]' (or use --executor dask)",
         )
         self._ray = ray
         self._own = not ray.is_initialized()
