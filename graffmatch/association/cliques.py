@@ -3,6 +3,11 @@
 CLIPPER returns one densest clique; verification needs its rivals too (a street seen flipped by
 180 degrees, a courtyard's symmetric twin). Greedy max-weight cliques grown from chosen starts
 are cheap (about clique size x degree per start) and return every clique, not only the best.
+
+Why not ``clipper.greedy_cliques``: that one serves the solver (it skips starts inside earlier
+cliques, prunes by a bound and runs in float32), while verification grows from *every* start,
+inside an ``allowed`` subset (the associations that disagree with the winner), and its decision
+thresholds were calibrated on exactly these cliques (``bench/verification.py``).
 """
 
 from __future__ import annotations
@@ -11,6 +16,8 @@ import numba as nb
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
+
+from graffmatch.association.clipper import _clique_objective
 
 
 @nb.njit(cache=True)
@@ -98,24 +105,9 @@ def greedy_cliques(
     return out
 
 
-@nb.njit(cache=True)
-def _objective(indptr, indices, data, sel, mark):
-    for v in sel:
-        mark[v] = True
-    total = 0.0
-    for v in sel:
-        for t in range(indptr[v], indptr[v + 1]):
-            if mark[indices[t]]:
-                total += data[t]
-    for v in sel:
-        mark[v] = False
-    return (sel.shape[0] + total) / sel.shape[0]
-
-
 def clique_objective(W: sp.csr_matrix, sel: NDArray[np.int64]) -> float:
     """Densest-clique objective of a binary selection: u^T (W + I) u / u^T u (no slicing)."""
     if len(sel) == 0:
         return 0.0
     data = W.data if W.data.dtype == np.float64 else W.data.astype(np.float64)
-    return float(_objective(W.indptr, W.indices, data, np.asarray(sel, np.int64),
-                            np.zeros(W.shape[0], np.bool_)))
+    return float(_clique_objective(W.indptr, W.indices, data, np.asarray(sel, np.int64), W.shape[0]))

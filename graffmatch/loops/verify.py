@@ -19,8 +19,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from graffmatch.errors import GraffMatchError
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
-from graffmatch.matcher import GraffMatchConfig, GraffMatcher
-from graffmatch.pipeline import ScanMatcher, ScanMatcherConfig
+from graffmatch.matcher import GraffMatcher
+from graffmatch.pipeline import ScanMatcher
 
 
 class VerificationConfig(BaseModel):
@@ -163,7 +163,3 @@ def verify_candidate(
     out["seconds"] = time.perf_counter() - t0
     return out
 
-
-def make_matcher(config: GraffMatchConfig | None) -> ScanMatcher:
-    """The verified matcher of the one scan-to-scan path (``graffmatch.pipeline.ScanMatcher``)."""
-    return ScanMatcher(ScanMatcherConfig(matcher=config or GraffMatchConfig()))

@@ -4,6 +4,7 @@ right (absolute evidence) and clearly better than its best distinct rival (margi
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,13 +49,19 @@ def transform_gap(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> tuple[f
     return rotation_error_deg(T_a[:3, :3], T_b[:3, :3]), float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
 
 
-def merge_hypotheses(hyps: list[Hypothesis], cfg: VerificationConfig) -> list[Hypothesis]:
-    """Keep, among hypotheses whose transforms agree within merge_deg / merge_m, the best scored
-    (ties: well-conditioned, more associations). Returns them best first. Vectorised gaps."""
+def merge_hypotheses(hyps: list[Hypothesis], cfg: VerificationConfig,
+                     by: Literal["score", "objective"] = "score") -> list[Hypothesis]:
+    """Keep, among hypotheses whose transforms agree within merge_deg / merge_m, the best by
+    ``by`` (evidence score, or clique objective before any evidence; ties: well-conditioned,
+    more associations). Returns them best first. Vectorised gaps."""
     if not hyps:
         return []
-    order = sorted(range(len(hyps)), key=lambda i: (-hyps[i].score, hyps[i].degenerate,
-                                                    -hyps[i].n_associations, -hyps[i].objective))
+
+    def rank(h: Hypothesis) -> tuple:
+        first = h.score if by == "score" else h.objective
+        return (-first, h.degenerate, -h.n_associations, -h.objective)
+
+    order = sorted(range(len(hyps)), key=lambda i: rank(hyps[i]))
     Ts = np.stack([hyps[i].T_target_source for i in order])
     R, t = Ts[:, :3, :3], Ts[:, :3, 3]
     tr = np.einsum("aij,bij->ab", R, R)  # trace(R_a^T R_b)

@@ -96,16 +96,6 @@ def _gated(hyps: list[Hypothesis], gate: tuple[float, float], min_assoc: int) ->
     return out
 
 
-def _premerge(hyps: list[Hypothesis], cfg: VerificationConfig) -> list[Hypothesis]:
-    """Collapse near-identical transforms before scoring, keeping the densest clique of each."""
-    for h in hyps:
-        h.score = h.objective  # ordering key only; real scores come next
-    out = merge_hypotheses(hyps, cfg)
-    for h in out:
-        h.score = 0.0
-    return out
-
-
 def _refine(best: Hypothesis, source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64],
             kappa_max: float, gate: tuple[float, float], min_associations: int,
             ev: Evidence, cfg: VerificationConfig) -> None:
@@ -188,7 +178,7 @@ def verify_graph(
         hyps += _register(source, target, associations, W, rivals, kappa_max)
         tm["hypotheses"] += t4 - t3
         tm["registration"] += time.perf_counter() - t4
-    hyps = _premerge(hyps, cfg)
+    hyps = merge_hypotheses(hyps, cfg, by="objective")  # collapse near-identical before scoring
     if gate is not None:
         t4 = time.perf_counter()
         hyps += _register(source, target, associations, W, _gated(hyps, gate, min_associations), kappa_max)
