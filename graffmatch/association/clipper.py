@@ -10,6 +10,9 @@ Each homotopy step runs projected gradient ascent (step, clamp to the orthant, n
 a backtracking line search; d then grows by the smallest ratio that makes some active non-edge
 unprofitable, until the support of u is a clique. The whole loop runs in one numba function on
 the CSR arrays: no dense m x m matrix, and the cost is non-zeros times iterations.
+
+The module runs past 500 lines on purpose: the homotopy, the pruning and the greedy cliques
+share the same numba CSR kernels and the same bounds, and splitting them would split one solver.
 """
 
 from __future__ import annotations
