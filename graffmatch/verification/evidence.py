@@ -5,12 +5,24 @@ thousand per scan): how much of the non-ground support of each scan lands within
 ``inlier_m`` of the other's under the hypothesis, in both directions. KD-trees (scipy) and no
 Python loop over points. Bare landmark sets without points fall back to landmark-level
 evidence: the share of landmarks that land on a counterpart of the same type.
+
+Speed: nearest-neighbour queries run on a cell hash of each cloud (numba; cell size = the
+query radius, 27 cells per query point), which returns exactly what ``cKDTree.query(...,
+distance_upper_bound=r)`` returns (the same nearest point, the same strict ``d < r``) at a
+fraction of its cost on clouds of a few thousand points. A cloud whose coordinates do not fit
+the cell keys falls back to the KD-tree. What depends on one scan only (downsampled support,
+cell hashes, dilated occupancy) is computed once per :class:`LandmarkSet` and kept in
+:data:`evidence_cache`, so one scan verified against k candidates pays for it once.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import threading
+import weakref
+from collections import OrderedDict
+from dataclasses import dataclass, field
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
@@ -21,37 +33,230 @@ _KEY_BITS = 20
 _KEY_OFF = 1 << (_KEY_BITS - 1)
 
 
-def _voxel_keys(points: NDArray[np.float64], voxel: float) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
-    """int64 key of each point's voxel, and whether it is inside the keyed range (+-2^19 voxels)."""
+def _voxel_keys(points: NDArray[np.float64], voxel: float,
+                origin: NDArray[np.float64] | None = None) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """int64 key of each point's voxel counted from ``origin`` (a voxel index; 0 if None), and
+    whether it is inside the keyed range (+-2^19 voxels around the origin)."""
     ijk = np.floor(points / voxel)
+    if origin is not None:
+        ijk = ijk - origin
     inside = np.all(np.abs(ijk) < _KEY_OFF - 2, axis=-1)
     ijk = np.where(inside[..., None], ijk, 0).astype(np.int64) + _KEY_OFF
     return (ijk[..., 0] << (2 * _KEY_BITS)) | (ijk[..., 1] << _KEY_BITS) | ijk[..., 2], inside
 
 
+_GRID_BITS = 20
+_GRID_LIM = 1 << _GRID_BITS  # cells per axis a cell hash can key
+_GRID_MARGIN = 1e-6  # cells are this much wider than twice the radius: rounding never hides a neighbour
+
+
+@nb.njit(cache=True, inline="always")
+def _slot(key: int, mask: int) -> int:
+    """Multiplicative (Fibonacci) hash of a packed cell key."""
+    h = np.uint64(key) * np.uint64(0x9E3779B97F4A7C15)
+    return np.int64(h >> np.uint64(32)) & mask
+
+
+@nb.njit(cache=True)
+def _hash_table(keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Open-addressing table (linear probing, load <= 1/4) of distinct non-negative keys -> index."""
+    cap = 8
+    while cap < 4 * len(keys):
+        cap *= 2
+    tk = np.full(cap, -1, np.int64)
+    tv = np.empty(cap, np.int64)
+    mask = cap - 1
+    for i in range(len(keys)):
+        s = _slot(keys[i], mask)
+        while tk[s] != -1:
+            s = (s + 1) & mask
+        tk[s] = keys[i]
+        tv[s] = i
+    return tk, tv
+
+
+@nb.njit(cache=True, inline="always")
+def _lookup(tk: NDArray[np.int64], tv: NDArray[np.int64], key: int) -> int:
+    mask = len(tk) - 1
+    s = _slot(key, mask)
+    while True:
+        k = tk[s]
+        if k == key:
+            return tv[s]
+        if k == -1:
+            return -1
+        s = (s + 1) & mask
+
+
+@nb.njit(cache=True)
+def _grid_query(q: NDArray[np.float64], pts: NDArray[np.float64], h: float, origin: NDArray[np.int64],
+                order: NDArray[np.int64], starts: NDArray[np.int64], tk: NDArray[np.int64],
+                tv: NDArray[np.int64], r2: float, nearest: bool, out: NDArray[np.int64]) -> None:
+    """For each query point, the index of its nearest cloud point with squared distance < r2
+    (-1 if none); ``nearest=False`` stops at the first such point (existence only).
+
+    Cells are twice the radius: the ball around a point lies in the 2 x 2 x 2 cells nearest to
+    it (per axis, its own cell and the neighbour on the side of the half it is in)."""
+    lim = float(_GRID_LIM)
+    for a in range(q.shape[0]):
+        qx, qy, qz = q[a, 0], q[a, 1], q[a, 2]
+        ux = qx / h
+        uy = qy / h
+        uz = qz / h
+        fx = np.floor(ux)
+        fy = np.floor(uy)
+        fz = np.floor(uz)
+        out[a] = -1
+        gx = fx - origin[0]
+        gy = fy - origin[1]
+        gz = fz - origin[2]
+        if not (gx >= -1.0 and gx <= lim and gy >= -1.0 and gy <= lim and gz >= -1.0 and gz <= lim):
+            continue  # also NaN: farther than a cell from the cloud
+        cx, cy, cz = int(gx), int(gy), int(gz)
+        sx = 1 if ux - fx >= 0.5 else -1
+        sy = 1 if uy - fy >= 0.5 else -1
+        sz = 1 if uz - fz >= 0.5 else -1
+        best = r2
+        bi = -1
+        for c8 in range(8):
+            x = cx + (sx if c8 & 1 else 0)
+            y = cy + (sy if c8 & 2 else 0)
+            z = cz + (sz if c8 & 4 else 0)
+            if x < 0 or y < 0 or z < 0 or x >= _GRID_LIM or y >= _GRID_LIM or z >= _GRID_LIM:
+                continue
+            c = _lookup(tk, tv, (x << (2 * _GRID_BITS)) | (y << _GRID_BITS) | z)
+            if c < 0:
+                continue
+            for s in range(starts[c], starts[c + 1]):
+                p = order[s]
+                d0 = qx - pts[p, 0]
+                d1 = qy - pts[p, 1]
+                d2 = qz - pts[p, 2]
+                d = d0 * d0 + d1 * d1 + d2 * d2
+                if d < best:
+                    best = d
+                    bi = p
+            if bi >= 0 and not nearest:
+                break
+        out[a] = bi
+
+
+@nb.njit(cache=True)
+def _occupied_hits(q: NDArray[np.float64], voxel: float, origin: NDArray[np.float64], tk: NDArray[np.int64],
+                   tv: NDArray[np.int64]) -> NDArray[np.int64]:
+    """(H, n, 3) points -> (H,) how many fall in an occupied voxel (the keys of :func:`_voxel_keys`)."""
+    H, n = q.shape[0], q.shape[1]
+    out = np.zeros(H, np.int64)
+    bound = float((1 << (_KEY_BITS - 1)) - 2)
+    for hh in range(H):
+        cnt = 0
+        for a in range(n):
+            i = np.floor(q[hh, a, 0] / voxel) - origin[0]
+            j = np.floor(q[hh, a, 1] / voxel) - origin[1]
+            k = np.floor(q[hh, a, 2] / voxel) - origin[2]
+            if not (abs(i) < bound and abs(j) < bound and abs(k) < bound):
+                continue
+            key = (((int(i) + _KEY_OFF) << (2 * _KEY_BITS)) | ((int(j) + _KEY_OFF) << _KEY_BITS)
+                   | (int(k) + _KEY_OFF))
+            if _lookup(tk, tv, key) >= 0:
+                cnt += 1
+        out[hh] = cnt
+    return out
+
+
+class CellHash:
+    """Points of one cloud bucketed by cells of size ``radius`` (slightly more), hashed by cell.
+
+    ``query(q)`` returns what ``cKDTree(points).query(q, k=1, distance_upper_bound=radius)[1]``
+    returns, with -1 for "none within the radius" instead of ``len(points)``."""
+
+    def __init__(self, points: NDArray[np.float64], radius: float) -> None:
+        self.points = points
+        self.radius = float(radius)
+        self.h = 2.0 * self.radius * (1.0 + _GRID_MARGIN)
+        c = np.floor(points / self.h)
+        # Coordinates that the cell keys or the rounding margin cannot represent: no hash.
+        self.ok = bool(len(points) and np.all(np.isfinite(c)) and np.abs(c).max() < 2.0**28)
+        if not self.ok:
+            return
+        ci = c.astype(np.int64)
+        self.origin = ci.min(axis=0) - 1
+        ci -= self.origin
+        if ci.max() >= _GRID_LIM - 2:
+            self.ok = False
+            return
+        key = (ci[:, 0] << (2 * _GRID_BITS)) | (ci[:, 1] << _GRID_BITS) | ci[:, 2]
+        self.order = np.argsort(key, kind="stable")
+        ks = key[self.order]
+        first = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+        self.starts = np.r_[first, len(ks)].astype(np.int64)
+        self.tk, self.tv = _hash_table(ks[first])
+
+    def query(self, q: NDArray[np.float64], nearest: bool = True) -> NDArray[np.int64]:
+        """Index of the nearest point strictly within the radius (-1: none); ``nearest=False``:
+        any point within the radius (enough to count explained points)."""
+        q = np.ascontiguousarray(q, dtype=np.float64).reshape(-1, 3)
+        out = np.empty(len(q), np.int64)
+        _grid_query(q, self.points, self.h, self.origin, self.order, self.starts, self.tk, self.tv,
+                    self.radius * self.radius, nearest, out)
+        return out
+
+
 @dataclass
 class SupportCloud:
-    """Voxel-downsampled non-ground evidence points of one scan, with their KD-tree and a
-    dilated voxel occupancy (sorted keys) that scores many hypotheses in one lookup."""
+    """Voxel-downsampled non-ground evidence points of one scan, with what queries them: cell
+    hashes per radius (built on first use), a KD-tree (only for clouds too far out for the
+    hashes) and a dilated voxel occupancy that scores many hypotheses in one lookup."""
 
     points: NDArray[np.float64]
-    tree: cKDTree
     occupancy: NDArray[np.int64] | None = None
     occupancy_voxel: float = 0.0
+    occupancy_origin: NDArray[np.float64] | None = None
+    _tree: cKDTree | None = field(default=None, repr=False)
+    _hashes: dict = field(default_factory=dict, repr=False)
+    _occ_table: tuple | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.points)
 
+    @property
+    def tree(self) -> cKDTree:
+        """KD-tree of the points (built on first use)."""
+        if self._tree is None:
+            self._tree = cKDTree(self.points)
+        return self._tree
+
+    def neighbours(self, q: NDArray[np.float64], radius: float, nearest: bool = True) -> NDArray[np.int64]:
+        """Index of the nearest point within ``radius`` (strictly) of each row of ``q``, -1 if
+        none; ``nearest=False``: of any point within the radius."""
+        h = self._hashes.get(radius)
+        if h is None:
+            h = self._hashes[radius] = CellHash(self.points, radius)
+        if h.ok:
+            return h.query(q, nearest)
+        _, idx = self.tree.query(q, k=1, distance_upper_bound=radius)
+        return np.where(idx < len(self.points), idx, -1)
+
     def occupied(self, voxel: float) -> NDArray[np.int64]:
-        """Sorted keys of the voxels that hold a point or touch one by a face (built once)."""
+        """Sorted keys of the voxels that hold a point or touch one by a face (built once),
+        counted from ``occupancy_origin`` (the cloud's lowest voxel: any coordinates fit)."""
         if self.occupancy is None or self.occupancy_voxel != voxel:
             off = np.array([[0, 0, 0], [1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]])
             base = np.floor(self.points / voxel)
+            self.occupancy_origin = base.min(axis=0) if len(base) else np.zeros(3)
             pts = ((base[:, None, :] + off[None]) + 0.5) * voxel
-            keys, inside = _voxel_keys(pts.reshape(-1, 3), voxel)
+            keys, inside = _voxel_keys(pts.reshape(-1, 3), voxel, self.occupancy_origin)
             self.occupancy = np.unique(keys[inside])
             self.occupancy_voxel = voxel
+            self._occ_table = None
         return self.occupancy
+
+    def occupied_table(self, voxel: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """The occupied voxel keys as a hash table (for :func:`_occupied_hits`)."""
+        occ = self.occupied(voxel)
+        if self._occ_table is None:
+            self._occ_table = _hash_table(occ)
+        return self._occ_table
 
 
 def occupancy_overlap(
@@ -61,15 +266,34 @@ def occupancy_overlap(
     counts when it falls in a voxel next to an occupied one (distance up to ~2 voxels)."""
     out = np.zeros((len(Ts), 2))
     for k, (a, b, T) in enumerate(((source, target, Ts), (target, source, None))):
-        P = a.points[np.linspace(0, len(a) - 1, min(n_points, len(a))).astype(np.int64)]
+        n = min(n_points, len(a))
+        P = a.points[np.linspace(0, len(a) - 1, n).astype(np.int64)]
         if T is None:  # target -> source: inverse transforms
             R = np.swapaxes(Ts[:, :3, :3], 1, 2)
             t = -np.einsum("hij,hj->hi", R, Ts[:, :3, 3])
         else:
             R, t = T[:, :3, :3], T[:, :3, 3]
         q = P @ np.swapaxes(R, 1, 2) + t[:, None, :]  # (H, n, 3); matmul is ~3x faster than einsum here
-        keys, inside = _voxel_keys(q, voxel)
+        tk, tv = b.occupied_table(voxel)
+        out[:, k] = _occupied_hits(np.ascontiguousarray(q), voxel, b.occupancy_origin, tk, tv) / n
+    return out
+
+
+def _occupancy_overlap_reference(
+    source: SupportCloud, target: SupportCloud, Ts: NDArray[np.float64], voxel: float, n_points: int = 256,
+) -> NDArray[np.float64]:
+    """numpy specification of :func:`occupancy_overlap` (sorted keys and a binary search)."""
+    out = np.zeros((len(Ts), 2))
+    for k, (a, b, T) in enumerate(((source, target, Ts), (target, source, None))):
+        P = a.points[np.linspace(0, len(a) - 1, min(n_points, len(a))).astype(np.int64)]
+        if T is None:
+            R = np.swapaxes(Ts[:, :3, :3], 1, 2)
+            t = -np.einsum("hij,hj->hi", R, Ts[:, :3, 3])
+        else:
+            R, t = T[:, :3, :3], T[:, :3, 3]
+        q = P @ np.swapaxes(R, 1, 2) + t[:, None, :]
         occ = b.occupied(voxel)
+        keys, inside = _voxel_keys(q, voxel, b.occupancy_origin)
         pos = np.searchsorted(occ, keys)
         hit = (occ[np.minimum(pos, len(occ) - 1)] == keys) & inside
         out[:, k] = hit.mean(axis=1)
@@ -118,7 +342,81 @@ def support_cloud(landmarks: LandmarkSet, voxel: float = 0.3, max_points: int = 
     P = voxel_downsample(pts, voxel, max_points)
     if len(P) < 10:
         return None
-    return SupportCloud(P, cKDTree(P))
+    return SupportCloud(P)
+
+
+class EvidenceCache:
+    """Support clouds of recently matched landmark sets, so that a scan verified against k
+    candidates (a loop detector's query, a map's keyframe) is downsampled and hashed once.
+
+    Keyed by the *identity* of the set's support arrays (``points``, ``point_offsets`` and the
+    ``is_ground`` attribute), held by weak references: an entry lives no longer than those
+    arrays, a new set (``ls[keep]``, a loaded file) never sees another's cloud, and the cache
+    keeps no scan alive. Treat a matched set's point arrays as read-only; after changing them in
+    place, call :meth:`clear`. At most ``max_entries`` clouds (least recently used dropped).
+    """
+
+    def __init__(self, max_entries: int = 128) -> None:
+        self.max_entries = max_entries
+        self._lock = threading.Lock()
+        self._entries: OrderedDict[tuple, tuple] = OrderedDict()
+        self.hits = 0
+        self.misses = 0
+
+    def support_cloud(self, landmarks: LandmarkSet, voxel: float = 0.3, max_points: int = 1500) -> SupportCloud | None:
+        """:func:`support_cloud` of ``landmarks``, computed once per set of support arrays."""
+        pts, off = landmarks.points, landmarks.point_offsets
+        if pts is None or off is None or self.max_entries <= 0:
+            return support_cloud(landmarks, voxel, max_points)
+        ground = landmarks.attributes.get("is_ground")
+        arrays = (pts, off, ground)
+        if not all(a is None or isinstance(a, np.ndarray) for a in arrays):
+            return support_cloud(landmarks, voxel, max_points)
+        key = (id(pts), id(off), id(ground), float(voxel), int(max_points))
+        with self._lock:
+            e = self._entries.get(key)
+            if e is not None and all((r is None and a is None) or (r is not None and r() is a)
+                                     for r, a in zip(e[0], arrays, strict=True)):
+                if key in self._entries:  # (a GC callback may have dropped it meanwhile)
+                    self._entries.move_to_end(key)
+                self.hits += 1
+                return e[1]
+        cloud = support_cloud(landmarks, voxel, max_points)
+        refs = tuple(None if a is None else weakref.ref(a, self._dropper(key)) for a in arrays)
+        with self._lock:
+            self.misses += 1
+            self._entries.pop(key, None)
+            self._entries[key] = (refs, cloud)
+            while len(self._entries) > self.max_entries:
+                self._entries.popitem(last=False)
+        return cloud
+
+    def _dropper(self, key: tuple):
+        selfref = weakref.ref(self)
+
+        def drop(_ref: weakref.ref) -> None:  # an array of the entry died: its id may be reused
+            cache = selfref()
+            if cache is not None:  # no lock: this may run inside a locked block (GC); pop is atomic
+                cache._entries.pop(key, None)
+
+        return drop
+
+    def clear(self) -> None:
+        with self._lock:
+            self._entries.clear()
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+
+evidence_cache = EvidenceCache()
+"""The process-wide cache :func:`graffmatch.verification.verify.evidence_for` uses."""
+
+
+def prepared_support(landmarks: LandmarkSet, voxel: float = 0.3, max_points: int = 1500) -> SupportCloud | None:
+    """The evidence cloud of one landmark set from :data:`evidence_cache` (built on first use):
+    what a loop detector calls once per scan before verifying it against its candidates."""
+    return evidence_cache.support_cloud(landmarks, voxel, max_points)
 
 
 def cloud_from_points(points: NDArray, voxel: float, max_points: int) -> SupportCloud | None:
@@ -126,7 +424,7 @@ def cloud_from_points(points: NDArray, voxel: float, max_points: int) -> Support
     P = voxel_downsample(points, voxel, max_points)
     if len(P) < 10:
         return None
-    return SupportCloud(P, cKDTree(P))
+    return SupportCloud(P)
 
 
 def point_overlap(
@@ -135,10 +433,10 @@ def point_overlap(
     """(source share explained by target, target share explained by source) under T (4x4)."""
     R, t = T_target_source[:3, :3], T_target_source[:3, 3]
     q = source.points @ R.T + t
-    d_st, _ = target.tree.query(q, k=1, distance_upper_bound=inlier_m)
+    i_st = target.neighbours(q, inlier_m, nearest=False)
     p = (target.points - t) @ R  # R^T (p - t)
-    d_ts, _ = source.tree.query(p, k=1, distance_upper_bound=inlier_m)
-    return float(np.mean(np.isfinite(d_st))), float(np.mean(np.isfinite(d_ts)))
+    i_ts = source.neighbours(p, inlier_m, nearest=False)
+    return float(np.mean(i_st >= 0)), float(np.mean(i_ts >= 0))
 
 
 def align_on_evidence(
@@ -150,13 +448,14 @@ def align_on_evidence(
 
     Landmark registration is only as good as the landmarks' fits; aligning the evidence points
     turns near misses (rotation right, translation off by a metre) into accurate transforms
-    before they are scored. Uses the clouds' KD-trees; deterministic (no threads)."""
+    before they are scored. Nearest neighbours from the target's cell hashes (the KD-tree's
+    answer); deterministic (no threads)."""
     T = np.array(T_target_source, dtype=np.float64)
     P = source.points
     for d_max in distances:
         q = P @ T[:3, :3].T + T[:3, 3]
-        d, idx = target.tree.query(q, k=1, distance_upper_bound=d_max)
-        m = np.isfinite(d)
+        idx = target.neighbours(q, d_max)
+        m = idx >= 0
         if m.sum() < 10:
             break
         a, b = P[m], target.points[idx[m]]

@@ -29,7 +29,7 @@ from graffmatch.verification.evidence import (
     landmark_overlap,
     occupancy_overlap,
     point_overlap,
-    support_cloud,
+    prepared_support,
 )
 from graffmatch.verification.hypotheses import (
     Candidate,
@@ -53,8 +53,9 @@ class Evidence:
 
 
 def evidence_for(source: LandmarkSet, target: LandmarkSet, cfg: VerificationConfig) -> Evidence:
-    return Evidence(support_cloud(source, cfg.voxel, cfg.max_points),
-                    support_cloud(target, cfg.voxel, cfg.max_points))
+    """Support clouds of both sets, from the per-scan cache (``evidence.evidence_cache``)."""
+    return Evidence(prepared_support(source, cfg.voxel, cfg.max_points),
+                    prepared_support(target, cfg.voxel, cfg.max_points))
 
 
 def _register(

@@ -1,0 +1,144 @@
+"""The fast evidence paths give exactly what the KD-tree / sorted-key specifications give, and
+the per-scan evidence cache never hands one set's cloud to another."""
+
+from __future__ import annotations
+
+import gc
+
+import numpy as np
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from scipy.spatial import cKDTree
+
+from graffmatch.datasets.landmark_scene import make_scene_pair
+from graffmatch.geometry.landmarks import LandmarkSet
+from graffmatch.geometry.transforms import random_transform
+from graffmatch.verification import evidence as E
+
+SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def _cloud(rng: np.random.Generator, n: int, scale: float, offset: float) -> np.ndarray:
+    """Points on a few planes and lines plus scatter, like landmark support."""
+    parts = [rng.uniform(-scale, scale, (n // 3, 3))]
+    for _ in range(3):
+        c = rng.uniform(-scale, scale, 3)
+        u, v = np.linalg.qr(rng.normal(size=(3, 3)))[0][:, :2].T
+        ab = rng.uniform(-scale / 2, scale / 2, (n // 6, 2))
+        parts.append(c + ab[:, :1] * u + ab[:, 1:] * v)
+    return np.concatenate(parts) + offset
+
+
+def _kd_idx(points: np.ndarray, q: np.ndarray, r: float) -> np.ndarray:
+    _, i = cKDTree(points).query(q, k=1, distance_upper_bound=r)
+    return np.where(i < len(points), i, -1)
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 400), scale=st.sampled_from([0.5, 5.0, 50.0]),
+       offset=st.sampled_from([0.0, -37.3, 5e4]), r=st.floats(0.05, 2.0))
+def test_cell_hash_equals_kdtree(seed, n, scale, offset, r):
+    rng = np.random.default_rng(seed)
+    P = _cloud(rng, max(n, 6), scale, offset)
+    Q = np.concatenate([P[: len(P) // 2] + rng.normal(scale=r, size=(len(P) // 2, 3)),
+                        rng.uniform(-2 * scale, 2 * scale, (50, 3)) + offset,
+                        P[:5] + [r, 0, 0], [[1e300, 0, 0], [0, -1e300, 0]]])
+    h = E.CellHash(P, r)
+    assert h.ok
+    ref = _kd_idx(P, Q, r)
+    np.testing.assert_array_equal(h.query(Q), ref)
+    np.testing.assert_array_equal(h.query(Q, nearest=False) >= 0, ref >= 0)
+    assert h.query(np.array([[np.nan, 0.0, 0.0]]))[0] == -1  # (the KD-tree refuses NaN)
+
+
+def test_clouds_too_far_out_fall_back_to_the_kdtree():
+    rng = np.random.default_rng(1)
+    P = _cloud(rng, 200, 5.0, 1e12)
+    cloud = E.SupportCloud(P)
+    Q = P + rng.normal(scale=0.2, size=P.shape)
+    np.testing.assert_array_equal(cloud.neighbours(Q, 0.3), _kd_idx(P, Q, 0.3))
+    assert not cloud._hashes[0.3].ok
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), H=st.integers(1, 12), offset=st.sampled_from([0.0, 1e5, 3e5]))
+def test_occupancy_overlap_equals_sorted_key_reference(seed, H, offset):
+    rng = np.random.default_rng(seed)
+    a = E.SupportCloud(_cloud(rng, 300, 20.0, offset))
+    b = E.SupportCloud(_cloud(rng, 300, 20.0, offset))
+    Ts = np.stack([random_transform(rng, max_translation=3.0) for _ in range(H)])
+    np.testing.assert_array_equal(E.occupancy_overlap(a, b, Ts, 0.3), E._occupancy_overlap_reference(a, b, Ts, 0.3))
+
+
+def _align_reference(source, target, T, distances=(1.0, 0.6, 0.4, 0.3, 0.3)):
+    """align_on_evidence as it was specified: scipy KD-tree nearest neighbours."""
+    T = np.array(T, dtype=np.float64)
+    P = source.points
+    tree = cKDTree(target.points)
+    for d_max in distances:
+        q = P @ T[:3, :3].T + T[:3, 3]
+        d, idx = tree.query(q, k=1, distance_upper_bound=d_max)
+        m = np.isfinite(d)
+        if m.sum() < 10:
+            break
+        a, b = P[m], target.points[idx[m]]
+        ca, cb = a.mean(0), b.mean(0)
+        U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
+        R = Vt.T @ D @ U.T
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, cb - R @ ca
+    return T
+
+
+def _small(rng: np.random.Generator) -> np.ndarray:
+    """A perturbation of a few degrees and decimetres."""
+    from graffmatch.geometry.transforms import make_transform, rot_z
+
+    return make_transform(rot_z(np.radians(rng.uniform(-4, 4))), rng.uniform(-0.5, 0.5, 3))
+
+
+def test_align_and_point_overlap_equal_the_kdtree_versions():
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        P = _cloud(rng, 900, 15.0, 0.0)
+        T_true = random_transform(rng, max_translation=5.0)
+        Pt = (P - T_true[:3, 3]) @ T_true[:3, :3]  # source frame
+        src = E.SupportCloud(Pt + rng.normal(scale=0.03, size=P.shape))
+        tgt = E.SupportCloud(P[rng.permutation(len(P))[:700]])
+        T0 = T_true @ _small(rng)
+        np.testing.assert_array_equal(E.align_on_evidence(src, tgt, T0), _align_reference(src, tgt, T0))
+        T = E.align_on_evidence(src, tgt, T0)
+        q = src.points @ T[:3, :3].T + T[:3, 3]
+        p = (tgt.points - T[:3, 3]) @ T[:3, :3]
+        ref = (np.mean(_kd_idx(tgt.points, q, 0.3) >= 0), np.mean(_kd_idx(src.points, p, 0.3) >= 0))
+        assert E.point_overlap(src, tgt, T, 0.3) == ref
+        assert ref[0] > 0.8  # the test exercises real overlap, not empty clouds
+
+
+def _with_support(ls: LandmarkSet, seed: int) -> LandmarkSet:
+    """The set with 40 support points per landmark, spread over its line or plane."""
+    rng = np.random.default_rng(seed)
+    pts = [ls.anchors[i] + rng.uniform(-3, 3, (40, 2)) @ ls.bases[i].T for i in range(len(ls))]
+    return LandmarkSet(ls.types, ls.bases, ls.anchors, ls.attributes, np.concatenate(pts),
+                       np.arange(len(ls) + 1) * 40)
+
+
+def test_evidence_cache_reuses_a_set_and_never_confuses_sets():
+    cache = E.EvidenceCache(max_entries=4)
+    source = _with_support(make_scene_pair(15, 30, seed=0).source, 0)
+    a = cache.support_cloud(source)
+    assert a is not None and cache.misses == 1
+    assert cache.support_cloud(source) is a and cache.hits == 1
+    np.testing.assert_array_equal(a.points, E.support_cloud(source).points)
+    sub = source[np.arange(len(source) // 2)]  # new arrays: its own cloud
+    b = cache.support_cloud(sub)
+    assert b is not a and len(b) < len(a)
+    assert cache.support_cloud(source, voxel=0.5) is not a  # other settings, other entry
+    n = len(cache)
+    del sub, b
+    gc.collect()
+    assert len(cache) == n - 1  # the entry died with the set's arrays
+    for seed in range(1, 6):  # bounded
+        cache.support_cloud(_with_support(make_scene_pair(5, 10, seed=seed).target, seed))
+    assert len(cache) <= 4
