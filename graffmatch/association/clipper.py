@@ -48,6 +48,13 @@ class ClipperConfig(BaseModel):
     beta: float = Field(0.25, gt=0, lt=1, description="backtracking step-size factor")
     alpha: float = Field(1.0, gt=0, description="initial step size of each homotopy step")
     eps: float = Field(1e-9, gt=0, description="numerical zero for u entries and line search")
+    line_search: Literal["backtracking", "exact"] = Field(
+        "backtracking",
+        description=(
+            "backtracking: the reference's (a mat-vec per trial step); exact: the maximiser of the "
+            "Rayleigh quotient along the projected gradient in closed form (one mat-vec per step)"
+        ),
+    )
     rounding: Rounding = Field(
         "clique",
         description=(
@@ -272,6 +279,162 @@ def _ascent(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, 
     return inner, matvecs
 
 
+@nb.njit(cache=True)
+def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, beta, eps):
+    """:func:`_ascent` with an exact line search: one mat-vec per step instead of one per trial.
+
+    F is a Rayleigh quotient u^T Q u / u^T u (Q = M - d Cbar), so along the ray u + t p
+    (p: the gradient's part tangent to the sphere, zero where u sits on the orthant's boundary
+    and the gradient points out) F(t) = (a + 2bt + ct^2) / (1 + 2et + ft^2) is a ratio of
+    quadratics whose maximiser over t >= 0 has a closed form. Q p costs one mat-vec; Q of the
+    clamped step follows linearly from Qu and Qp, plus a scatter of the rows of the (few)
+    coordinates the orthant projection clamps to zero. If the clamping lowers F, t shrinks by
+    ``beta`` (no new mat-vec). Same stopping rules, same fixed points (KKT points at this d)."""
+    m = u.shape[0]
+    n = rows.shape[0]
+    Mu = np.zeros(m)
+    Cu = np.zeros(m)
+    p = np.zeros(m)
+    Mp = np.zeros(m)
+    Cp = np.zeros(m)
+    v = np.zeros(m)
+    Mv = np.zeros(m)
+    Cv = np.zeros(m)
+    clamped = np.empty(n, dtype=np.int64)
+    rows_nnz = 0
+    for i in range(n):
+        rows_nnz += indptr[rows[i] + 1] - indptr[rows[i]]
+    _matvecs_rows(indptr, indices, data, u, rows, Mu, Cu)
+    matvecs = 1
+    s = 0.0
+    F = 0.0
+    for i in range(n):
+        s += u[rows[i]]
+    for i in range(n):
+        r = rows[i]
+        F += u[r] * (Mu[r] - d * (s - Cu[r]))
+    inner = 0
+    for _ in range(max_inner):
+        inner += 1
+        for i in range(n):
+            r = rows[i]
+            x = Mu[r] - d * (s - Cu[r]) - F * u[r]
+            if u[r] <= 0.0 and x < 0.0:
+                x = 0.0
+            p[r] = x
+        _matvecs_rows(indptr, indices, data, p, rows, Mp, Cp)
+        matvecs += 1
+        sp_ = 0.0
+        for i in range(n):
+            sp_ += p[rows[i]]
+        b = 0.0
+        c = 0.0
+        e = 0.0
+        f = 0.0
+        for i in range(n):
+            r = rows[i]
+            b += p[r] * (Mu[r] - d * (s - Cu[r]))
+            c += p[r] * (Mp[r] - d * (sp_ - Cp[r]))
+            e += u[r] * p[r]
+            f += p[r] * p[r]
+        if f <= 0.0 or b <= 0.0:
+            break  # no ascent direction: a KKT point at this d
+        # F'(t) = 0 <=> qa t^2 + qb t + qc = 0 (F'(0) ~ qc = b - F e > 0)
+        qa = c * e - b * f
+        qb = c - F * f
+        qc = b - F * e
+        t = -1.0
+        best = F
+        if qa == 0.0:
+            if qb != 0.0:
+                t = -qc / qb
+        else:
+            disc = qb * qb - 4.0 * qa * qc
+            if disc >= 0.0:
+                sq = np.sqrt(disc)
+                q = -0.5 * (qb + (sq if qb >= 0.0 else -sq))  # stable roots q / qa, qc / q
+                for root in (q / qa, qc / q if q != 0.0 else -1.0):
+                    if root > 0.0:
+                        val = (F + 2.0 * b * root + c * root * root) / (1.0 + 2.0 * e * root + f * root * root)
+                        if val > best:
+                            best = val
+                            t = root
+        if t <= 0.0:
+            t = 1e8 / np.sqrt(f)  # F rises along the whole ray: step (almost) onto p
+        accepted = False
+        Fnew = F
+        nrm = 1.0
+        sv = 0.0
+        for _ls in range(max_ls):
+            nclamp = 0
+            clamp_nnz = 0
+            for i in range(n):
+                r = rows[i]
+                x = u[r] + t * p[r]
+                v[r] = x
+                if x < 0.0:
+                    clamped[nclamp] = r
+                    nclamp += 1
+                    clamp_nnz += indptr[r + 1] - indptr[r]
+            if 2 * clamp_nnz > rows_nnz:  # many clamps: one direct mat-vec is cheaper
+                for j in range(nclamp):
+                    v[clamped[j]] = 0.0
+                _matvecs_rows(indptr, indices, data, v, rows, Mv, Cv)
+                matvecs += 1
+            else:
+                for i in range(n):
+                    r = rows[i]
+                    Mv[r] = Mu[r] + t * Mp[r]
+                    Cv[r] = Cu[r] + t * Cp[r]
+                for j in range(nclamp):  # add Q of the clamp correction -v_r e_r (W symmetric)
+                    r = clamped[j]
+                    x = -v[r]
+                    v[r] = 0.0
+                    Mv[r] += x
+                    Cv[r] += x
+                    for k in range(indptr[r], indptr[r + 1]):
+                        w = indices[k]
+                        Mv[w] += data[k] * x
+                        Cv[w] += x
+            nrm = 0.0
+            sv = 0.0
+            for i in range(n):
+                x = v[rows[i]]
+                nrm += x * x
+                sv += x
+            if nrm <= 0.0:
+                t *= beta
+                continue
+            Fnew = 0.0
+            for i in range(n):
+                r = rows[i]
+                Fnew += v[r] * (Mv[r] - d * (sv - Cv[r]))
+            Fnew /= nrm
+            if Fnew - F < -eps:
+                t *= beta
+            else:
+                accepted = True
+                break
+        if not accepted:
+            break
+        inv = 1.0 / np.sqrt(nrm)
+        du = 0.0
+        for i in range(n):
+            r = rows[i]
+            x = v[r] * inv
+            diff = x - u[r]
+            du += diff * diff
+            u[r] = x
+            Mu[r] = Mv[r] * inv
+            Cu[r] = Cv[r] * inv
+        s = sv * inv
+        deltaF = Fnew - F
+        F = Fnew
+        if np.sqrt(du) < tol_u or abs(deltaF) < tol_F:
+            break
+    return inner, matvecs
+
+
 def _homotopy(indptr, indices, data, u0, cfg: ClipperConfig) -> tuple[np.ndarray, int, int, int, float]:
     """CLIPPER's outer loop with an active set.
 
@@ -322,10 +485,16 @@ def _homotopy(indptr, indices, data, u0, cfg: ClipperConfig) -> tuple[np.ndarray
         if not np.any(uk[rows] > 0):
             uk[rows] = 1.0
         uk[rows] /= np.linalg.norm(uk[rows])
-        inner, nmv = _ascent(
-            sub[0], sub[1], sub[2], uk, rows, d, cfg.tol_u, cfg.tol_F, cfg.max_inner_iterations,
-            cfg.max_line_search_iterations, cfg.beta, cfg.alpha, cfg.eps,
-        )
+        if cfg.line_search == "exact":
+            inner, nmv = _ascent_exact(
+                sub[0], sub[1], sub[2], uk, rows, d, cfg.tol_u, cfg.tol_F, cfg.max_inner_iterations,
+                cfg.max_line_search_iterations, cfg.beta, cfg.eps,
+            )
+        else:
+            inner, nmv = _ascent(
+                sub[0], sub[1], sub[2], uk, rows, d, cfg.tol_u, cfg.tol_F, cfg.max_inner_iterations,
+                cfg.max_line_search_iterations, cfg.beta, cfg.alpha, cfg.eps,
+            )
         inner_total += inner
         matvecs += nmv + 1
         u[:] = 0.0
@@ -404,22 +573,21 @@ def _subgraph(indptr, indices, data, keep_mask):
         if keep_mask[v]:
             c = 0
             for t in range(indptr[v], indptr[v + 1]):
-                if keep_mask[indices[t]]:
-                    c += 1
+                c += keep_mask[indices[t]]  # branch-free: a kept/dropped neighbour is a coin flip
             counts[newid[v] + 1] = c
     ip = np.cumsum(counts)
-    ind = np.empty(ip[-1], dtype=np.int32)
-    dat = np.empty(ip[-1], dtype=data.dtype)
+    ind = np.empty(ip[-1] + 1, dtype=np.int32)  # + 1: the branch-free copy writes one past a row
+    dat = np.empty(ip[-1] + 1, dtype=data.dtype)
     for v in range(m):
         if keep_mask[v]:
             pos = ip[newid[v]]
             for t in range(indptr[v], indptr[v + 1]):
+                # write every entry, advance only past kept ones (overwritten otherwise)
                 w = indices[t]
-                if keep_mask[w]:
-                    ind[pos] = np.int32(newid[w])
-                    dat[pos] = data[t]
-                    pos += 1
-    return ip, ind, dat
+                ind[pos] = np.int32(newid[w])
+                dat[pos] = data[t]
+                pos += keep_mask[w]
+    return ip, ind[: ip[-1]], dat[: ip[-1]]
 
 
 @nb.njit(cache=True)
@@ -464,23 +632,16 @@ def clique_density(W: sp.csr_matrix, sel: NDArray[np.int64]) -> float:
 
 
 @nb.njit(cache=True)
-def _has_diagonal(indptr, indices):
-    """True when some stored entry is on the diagonal (one pass over the indices, no copy)."""
+def _check_graph(indptr, indices, data):
+    """(all weights finite and in [0, 1], some stored entry on the diagonal): one pass, no copy."""
+    valid = True
+    diagonal = False
     for r in range(indptr.shape[0] - 1):
         for k in range(indptr[r], indptr[r + 1]):
-            if indices[k] == r:
-                return True
-    return False
-
-
-@nb.njit(cache=True)
-def _weights_valid(data):
-    """All weights finite and in [0, 1] (one pass)."""
-    for k in range(data.shape[0]):
-        x = data[k]
-        if not (x >= 0.0 and x <= 1.0 + 1e-12):
-            return False
-    return True
+            x = data[k]
+            valid &= x >= 0.0 and x <= 1.0 + 1e-12
+            diagonal |= indices[k] == r
+    return valid, diagonal
 
 
 @nb.njit(cache=True)
@@ -515,13 +676,14 @@ def _clique_objective(indptr, indices, data, sel, m):
 
 @nb.njit(cache=True)
 def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_work,
-                 prune_to_best, skip_covered):
+                 prune_to_best, skip_covered, covered, allowed):
     """Grow a greedy max-weight clique from each start, in order; returns the cliques found.
 
-    Each step adds the candidate (adjacent to the whole clique) with the largest summed weight
-    to the clique. Work is bounded three ways, none of which can drop a clique that beats
+    Each step adds the candidate (adjacent to the whole clique and ``allowed``) with the largest
+    summed weight to the clique. Work is bounded three ways, none of which can drop a clique that beats
     ``lower_bound`` on the objective (k + 2 W) / k <= 1 + (k - 1) w_max:
-      * a start already inside a clique found here is skipped (it would regrow that clique);
+      * with ``skip_covered``, a start inside ``covered`` (given: e.g. CLIPPER's clique; updated
+        with every clique grown here) is skipped: it would regrow (around) that clique;
       * a growth stops as soon as 1 + (size + candidates - 1) w_max <= the best objective so far
         (``prune_to_best``) or <= ``lower_bound``;
       * the total of edges visited stops at ``max_work``, also within a growth (deterministic,
@@ -535,7 +697,6 @@ def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_wo
     score = np.zeros(m)
     is_cand = np.zeros(m, dtype=np.bool_)
     adjacent = np.zeros(m, dtype=np.bool_)
-    covered = np.zeros(m, dtype=np.bool_)
     clique = np.empty(m, dtype=np.int64)
     cand = np.empty(m, dtype=np.int64)
     members = np.empty(0, dtype=np.int64)
@@ -553,10 +714,10 @@ def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_wo
         n_cand = 0
         for t in range(indptr[s], indptr[s + 1]):
             j = indices[t]
-            score[j] = data[t]
+            score[j] = data[t] * allowed[j]  # branch-free: the other vertices keep score 0
             cand[n_cand] = j
-            n_cand += 1
-        work += n_cand
+            n_cand += allowed[j]
+        work += indptr[s + 1] - indptr[s]
         clique[0] = s
         k = 1
         total_w = 0.0
@@ -662,7 +823,8 @@ def greedy_cliques(
     n_max = starts.size if max_cliques is None else int(max_cliques)
     budget = np.iinfo(np.int64).max if max_work is None else int(max_work)
     members, offsets, objectives, _ = _greedy_core(
-        indptr, indices, data, starts, float(lower_bound), max(n_max, 0), budget, False, True
+        indptr, indices, data, starts, float(lower_bound), max(n_max, 0), budget, False, True,
+        np.zeros(W.shape[0], dtype=np.bool_), np.ones(W.shape[0], dtype=np.bool_),
     )
     return [members[offsets[c]:offsets[c + 1]] for c in range(len(objectives))], objectives
 
@@ -679,47 +841,68 @@ def solve_clipper(weights: sp.spmatrix, config: ClipperConfig | None = None,
     """
     cfg = config or ClipperConfig()
     W = weights if isinstance(weights, sp.csr_matrix) else sp.csr_matrix(weights)
-    if W.shape[0] == W.shape[1] and W.nnz and _has_diagonal(W.indptr, W.indices):
-        W = W.copy()
-        W.setdiag(0)
-        W.eliminate_zeros()
+    if W.shape[0] != W.shape[1]:
+        raise InvalidInputError(f"weights must be square, got {W.shape}")
+    if W.nnz:
+        valid, diagonal = _check_graph(W.indptr, W.indices, W.data)
+        if not valid:
+            raise InvalidInputError("edge weights must be finite and in [0, 1]")
+        if diagonal:
+            W = W.copy()
+            W.setdiag(0)
+            W.eliminate_zeros()
     sol = _solve_once(W, cfg, u0)
     if cfg.greedy_starts and W.nnz:
-        indptr, indices, data = _csr_parts(W)
-        density = _clique_objective(indptr, indices, data, sol.selected, W.shape[0])
-        starts = greedy_start_order(W, cfg.greedy_starts)
+        _greedy_stage(W, sol, cfg)
+    return sol
+
+
+def _greedy_stage(W: sp.csr_matrix, sol: ClipperSolution, cfg: ClipperConfig) -> None:
+    """Let greedy cliques compete with CLIPPER's clique (in place on ``sol``), only where they can win.
+
+    A clique of k vertices has objective <= 1 + (k - 1) w_max, so one that beats CLIPPER's
+    density needs k >= k_min and lies in the (k_min - 1)-core of the graph. The greedy cliques
+    start and grow inside that core only (a mask, no copy), from the ``greedy_starts``
+    best-connected core vertices: a growth that would leave the core ends in a clique too small
+    to win, and a growth that can win picks only core vertices, so the restriction loses no
+    winner."""
+    indptr, indices, data = _csr_parts(W)
+    m = W.shape[0]
+    density = _clique_objective(indptr, indices, data, sol.selected, m)
+    w_max = float(data.max())
+    k_min = int(np.floor((density - 1.0) / w_max)) + 2 if w_max > 0 else m + 1
+    core = _kcore_keep(indptr, indices, k_min - 1) if k_min > 1 else np.ones(m, dtype=np.bool_)
+    keep = np.flatnonzero(core)
+    work = 0
+    objectives = np.zeros(0)
+    if keep.size >= k_min:
+        wdeg = _row_sums(indptr, data)[keep]
+        starts = keep[np.argsort(-wdeg, kind="stable")[: cfg.greedy_starts]].astype(np.int64)
         budget = max(int(cfg.greedy_max_work * W.nnz), cfg.greedy_min_work)
         members, offsets, objectives, work = _greedy_core(
-            indptr, indices, data, starts, density + 1e-9, starts.size, budget, True, False
+            indptr, indices, data, starts, density + 1e-9, starts.size, budget, True, False,
+            np.zeros(m, dtype=np.bool_), core,
         )
-        sol.info.update(clipper_density=float(density), greedy_work=int(work),
-                        greedy_cliques=int(objectives.size))
-        if objectives.size:
-            c = int(np.argmax(objectives))  # first of equals, as before
-            sol.selected = members[offsets[c]:offsets[c + 1]].copy()
-            sol.u = np.zeros(W.shape[0])
-            sol.u[sol.selected] = 1.0 / np.sqrt(len(sol.selected))  # the clique's indicator
-            sol.score = float(objectives[c])
-            sol.info["greedy_density"] = float(objectives[c])
-            sol.info["chosen"] = "greedy"
-        else:
-            sol.info["chosen"] = "clipper"
-    return sol
+    sol.info.update(clipper_density=float(density), greedy_work=int(work),
+                    greedy_cliques=int(objectives.size), greedy_core=int(keep.size))
+    if objectives.size:
+        c = int(np.argmax(objectives))  # first of equals, as before
+        sol.selected = members[offsets[c]:offsets[c + 1]].copy()
+        sol.u = np.zeros(m)
+        sol.u[sol.selected] = 1.0 / np.sqrt(len(sol.selected))  # the clique's indicator
+        sol.score = float(objectives[c])
+        sol.info["greedy_density"] = float(objectives[c])
+        sol.info["chosen"] = "greedy"
+    else:
+        sol.info["chosen"] = "clipper"
 
 
 def _solve_once(W: sp.csr_matrix, cfg: ClipperConfig,
                 u0: NDArray[np.float64] | None) -> ClipperSolution:
+    """CLIPPER alone on a checked graph (square, weights in [0, 1], no diagonal)."""
     m = W.shape[0]
-    if W.shape != (m, m):
-        raise InvalidInputError(f"weights must be square, got {W.shape}")
     if m == 0:
         return ClipperSolution(np.zeros(0, np.int64), np.zeros(0), 0.0, 0, 0, 0, 0.0)
-    if W.nnz and not _weights_valid(W.data):
-        raise InvalidInputError("edge weights must be finite and in [0, 1]")
-    if W.nnz and _has_diagonal(W.indptr, W.indices):
-        W = W.copy()
-        W.setdiag(0)
-        W.eliminate_zeros()
     # float32 weights (the graph builder's) are used as stored: the mat-vec streams 8 bytes per
     # non-zero instead of 12, and accumulates in float64.
     indptr, indices, data = _csr_parts(W)

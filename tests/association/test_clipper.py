@@ -227,7 +227,8 @@ def test_bounded_greedy_keeps_the_best_clique_of_independent_starts():
         W = sp.csr_matrix(W[perm][:, perm])
         starts = greedy_start_order(W, 40)
         _, _, obj, _ = _greedy_core(W.indptr, W.indices, W.data, starts, 0.0, 40,
-                                       np.iinfo(np.int64).max, True, False)
+                                       np.iinfo(np.int64).max, True, False, np.zeros(150, dtype=bool),
+                                       np.ones(150, dtype=bool))
         assert np.isclose(obj.max(), _independent_greedy_best(W, starts))
         assert np.all(np.diff(obj) > 0)  # with pruning to the best, each kept clique improves
 
@@ -265,3 +266,62 @@ def test_greedy_work_budget_is_respected_and_deterministic():
     # the budget also stops a growth: at most one step (<= 3 m visits) beyond it
     assert 0 < a.info["greedy_work"] <= 0.5 * W.nnz + 3 * W.shape[0]
     assert set(a.selected.tolist()) == set(range(25))
+
+
+def test_exact_line_search_reaches_the_same_cliques():
+    """The closed-form line search is a different path to the same KKT points: on planted
+    graphs (both d schedules, with and without pruning) it selects what backtracking selects.
+    On these easy graphs backtracking already takes ~1 mat-vec per step, so the counts match."""
+    rng = np.random.default_rng(17)
+    total = {"backtracking": 0, "exact": 0}
+    for t in range(12):
+        W = planted_graph(300, int(rng.integers(8, 30)), 0.3, rng)
+        perm = rng.permutation(300)
+        W = sp.csr_matrix(W[perm][:, perm])
+        for schedule in ("min", "mean"):
+            base = ClipperConfig(seed=t, d_schedule=schedule, rescale_u0=schedule == "mean", tol_u=1e-3,
+                                 tol_F=1e-4, prune=t % 2 == 0)
+            a = solve_clipper(W, base)
+            b = solve_clipper(W, base.model_copy(update={"line_search": "exact"}))
+            assert np.array_equal(a.selected, b.selected)
+            total["backtracking"] += a.matvecs
+            total["exact"] += b.matvecs
+    assert total["exact"] <= 1.1 * total["backtracking"]
+
+
+def test_exact_line_search_halves_matvecs_on_a_street_scene_graph(monkeypatch):
+    """On a landmark consistency graph (W1 street scene, 180 deg between the views), where
+    backtracking overshoots and retries, the exact search needs far fewer mat-vecs for the same
+    selection (measured: 182 -> 38)."""
+    import graffmatch.matcher as gm
+    from graffmatch.datasets.landmark_scene import make_scene_pair
+
+    graphs = []
+    monkeypatch.setattr(gm, "solve_clipper", lambda W, cfg=None, u0=None: graphs.append(W) or solve_clipper(W, cfg, u0))
+    sc = make_scene_pair(15, 30, seed=4)
+    gm.GraffMatcher().match(sc.source, sc.target)
+    cfg = gm.GraffMatchConfig().solver
+    a = solve_clipper(graphs[0], cfg.model_copy(update={"line_search": "backtracking"}))
+    b = solve_clipper(graphs[0], cfg.model_copy(update={"line_search": "exact"}))
+    assert np.array_equal(a.selected, b.selected)
+    assert b.matvecs <= 0.5 * a.matvecs
+
+
+def test_exact_line_search_ascends_monotonically():
+    """Each accepted step of the exact search may not lower F (the clamping is backtracked)."""
+    from graffmatch.association.clipper import _ascent_exact
+
+    rng = np.random.default_rng(4)
+    W = planted_graph(200, 15, 0.3, rng)
+    u = rng.uniform(0.0, 1.0, 200)
+    u /= np.linalg.norm(u)
+    rows = np.arange(200)
+    d = 0.5
+    Q = (W + sp.eye(200)).toarray() - d * (np.ones((200, 200)) - ((W != 0).toarray() + np.eye(200)))
+    values = [float(u @ Q @ u)]
+    for _ in range(15):  # one step at a time
+        _ascent_exact(W.indptr, W.indices, W.data, u, rows, d, 0.0, 0.0, 1, 99, 0.25, 1e-9)
+        assert np.isclose(np.linalg.norm(u), 1.0) and np.all(u >= 0.0)
+        values.append(float(u @ Q @ u))
+    assert np.all(np.diff(values) >= -1e-9)
+    assert values[-1] > values[0] + 1.0
