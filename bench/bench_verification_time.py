@@ -1,6 +1,12 @@
 """Cost of verification: ``match()`` with and without it, in the same run, on real KITTI and
 courtyard landmark sets (support points as evidence) and on W1/W2 (landmark-level evidence),
-plus raw-scan ICP refinement in ``ScanMatcher.register``. Medians, p95 and the targets.
+plus the raw-scan path ``ScanMatcher.register`` (ICP on the scans). Medians, p95, the targets,
+the process's peak RSS and the load average during the run.
+
+``with (cold)`` clears the per-scan evidence cache (``graffmatch.verification.evidence.
+evidence_cache``) before every call: a pair seen for the first time. ``with (warm)`` keeps it:
+a scan verified against several candidates (loop detection) pays for its support cloud once.
+Calls of the three variants are interleaved, so load changes hit them alike.
 
     python bench/bench_verification_time.py --json bench/results/verification_time.json
 """
@@ -10,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import time
 from pathlib import Path
 
@@ -23,15 +30,27 @@ from graffmatch.matcher import GraffMatchConfig, GraffMatcher
 from graffmatch.pipeline import RefinementConfig, ScanMatcher, ScanMatcherConfig
 from graffmatch.verification.config import VerificationConfig
 
+try:
+    from graffmatch.verification.evidence import evidence_cache
+except ImportError:  # code before the per-scan cache (for before/after runs of this script)
+    evidence_cache = None
 
-def timed(fn, repeat: int) -> np.ndarray:
-    fn()  # warm-up (numba, caches)
-    out = []
+
+def interleaved(fns: dict, repeat: int) -> dict[str, np.ndarray]:
+    """Wall times [ms] of each callable, called in turn ``repeat`` times after one warm-up each."""
+    for f in fns.values():
+        f()  # warm-up (numba, caches)
+    out: dict[str, list[float]] = {k: [] for k in fns}
     for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - t0)
-    return np.array(out) * 1e3
+        for k, f in fns.items():
+            t0 = time.perf_counter()
+            f()
+            out[k].append(time.perf_counter() - t0)
+    return {k: np.array(v) * 1e3 for k, v in out.items()}
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def main() -> None:
@@ -49,35 +68,52 @@ def main() -> None:
     court = KittiFolder(root / "balm_courtyard")
     exc = LandmarkExtractor(suite_config("balm_courtyard").extractor)
     c = {i: exc.extract(court[i].points) for i in (10, 16, 40, 47, 70, 75)}
-    cases = {"KITTI 5->0": (k5, k0, 10.0, None), "courtyard 16->10": (c[16], c[10], 10.0, None),
-             "courtyard 47->40": (c[47], c[40], 10.0, None), "courtyard 75->70": (c[75], c[70], 10.0, None)}
-    for name, (n_poles, n_planes, target) in {"W1": (15, 30, None), "W2": (30, 60, None)}.items():
+    cases = {"KITTI 5->0": (k5, k0, 10.0), "courtyard 16->10": (c[16], c[10], 10.0),
+             "courtyard 47->40": (c[47], c[40], 10.0), "courtyard 75->70": (c[75], c[70], 10.0)}
+    for name, (n_poles, n_planes) in {"W1": (15, 30), "W2": (30, 60)}.items():
         sc = make_scene_pair(n_poles, n_planes, seed=0)
-        cases[name] = (sc.source, sc.target, None, target)
-    print(f"load average {os.getloadavg()[0]:.2f}")
-    print(f"{'workload':<20}{'m':>6}{'without':>12}{'with':>12}{'p95 with':>10}{'extra':>9}  target")
-    for name, (s, t, target_abs, _) in cases.items():
-        t_off = timed(lambda s=s, t=t: off.match(s, t), a.repeat)
-        t_on = timed(lambda s=s, t=t: on.match(s, t), a.repeat)
+        cases[name] = (sc.source, sc.target, None)
+    load0 = os.getloadavg()
+    rss0 = peak_rss_mb()
+    print(f"load average at start {load0[0]:.2f} (1 min) {load0[1]:.2f} (5 min); peak RSS after loading {rss0:.0f} MB")
+    print(f"{'workload':<18}{'m':>6}{'without':>10}{'cold':>10}{'warm':>10}{'p95 cold':>10}{'p95 warm':>10}"
+          f"{'extra warm':>11}  target")
+    for name, (s, t, target_abs) in cases.items():
+        def cold(s=s, t=t):
+            if evidence_cache is not None:
+                evidence_cache.clear()
+            return on.match(s, t)
+
+        ts = interleaved({"without": lambda s=s, t=t: off.match(s, t), "cold": cold,
+                          "warm": lambda s=s, t=t: on.match(s, t)}, a.repeat)
         r = on.match(s, t)
-        extra = np.median(t_on) - np.median(t_off)
+        med = {k: float(np.median(v)) for k, v in ts.items()}
+        p95 = {k: float(np.percentile(v, 95)) for k, v in ts.items()}
+        extra = med["warm"] - med["without"]
         tgt = f"<= {target_abs:.0f} ms with" if target_abs else ("<= +5 ms" if name == "W1" else "-")
-        print(f"{name:<20}{r.n_putative:>6}{np.median(t_off):>10.1f}ms{np.median(t_on):>10.1f}ms"
-              f"{np.percentile(t_on, 95):>8.1f}ms{extra:>7.1f}ms  {tgt}")
-        rows.append({"workload": name, "m": r.n_putative, "median_without_ms": float(np.median(t_off)),
-                     "median_with_ms": float(np.median(t_on)), "p95_with_ms": float(np.percentile(t_on, 95)),
+        print(f"{name:<18}{r.n_putative:>6}{med['without']:>8.1f}ms{med['cold']:>8.1f}ms{med['warm']:>8.1f}ms"
+              f"{p95['cold']:>8.1f}ms{p95['warm']:>8.1f}ms{extra:>9.1f}ms  {tgt}")
+        rows.append({"workload": name, "m": r.n_putative, "median_without_ms": med["without"],
+                     "median_with_ms": med["warm"], "median_with_cold_ms": med["cold"],
+                     "p95_without_ms": p95["without"], "p95_with_ms": p95["warm"], "p95_with_cold_ms": p95["cold"],
                      "valid": r.valid, "timings_ms": {k: v * 1e3 for k, v in r.timings.items()}})
     sm = ScanMatcher(ScanMatcherConfig(refinement=RefinementConfig(method="icp")))
-    t_reg = timed(lambda: sm.register(kitti[5].points, kitti[0].points), max(3, a.repeat // 3))
+    t_reg = interleaved({"register": lambda: sm.register(kitti[5].points, kitti[0].points)},
+                        max(3, a.repeat // 3))["register"]
     reg = sm.register(kitti[5].points, kitti[0].points)
     print(f"\nScanMatcher.register KITTI 5->0 (2 extractions + verified match + ICP on the scans): "
           f"median {np.median(t_reg):.0f} ms; ICP {reg.timings.get('icp', 0) * 1e3:.1f} ms (target <= 30 ms), "
           f"valid={reg.valid}")
     rows.append({"workload": "register KITTI 5->0", "median_ms": float(np.median(t_reg)),
                  "icp_ms": reg.timings.get("icp", 0) * 1e3, "timings_ms": {k: v * 1e3 for k, v in reg.timings.items()}})
+    load1 = os.getloadavg()
+    print(f"load average at end {load1[0]:.2f} (1 min); peak RSS {peak_rss_mb():.0f} MB")
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps({"load_average": os.getloadavg()[0], "rows": rows}, indent=1, default=float))
+        Path(a.json).write_text(json.dumps({
+            "load_average": load1[0], "load_average_start": list(load0), "load_average_end": list(load1),
+            "peak_rss_mb_after_loading": rss0, "peak_rss_mb": peak_rss_mb(), "rows": rows,
+        }, indent=1, default=float))
 
 
 if __name__ == "__main__":

@@ -47,7 +47,8 @@ def _voxel_keys(points: NDArray[np.float64], voxel: float,
 
 _GRID_BITS = 20
 _GRID_LIM = 1 << _GRID_BITS  # cells per axis a cell hash can key
-_GRID_MARGIN = 1e-6  # cells are this much wider than twice the radius: rounding never hides a neighbour
+_GRID_MARGIN = 1e-5  # cells are this much wider than twice the radius: rounding never hides a neighbour
+_DENSE_MAX = 1 << 19  # largest dense cell table (int32, 2 MB); bigger boxes use the hash
 
 
 @nb.njit(cache=True, inline="always")
@@ -89,20 +90,22 @@ def _lookup(tk: NDArray[np.int64], tv: NDArray[np.int64], key: int) -> int:
 
 
 @nb.njit(cache=True)
-def _grid_query(q: NDArray[np.float64], pts: NDArray[np.float64], h: float, origin: NDArray[np.int64],
-                order: NDArray[np.int64], starts: NDArray[np.int64], tk: NDArray[np.int64],
-                tv: NDArray[np.int64], r2: float, nearest: bool, out: NDArray[np.int64]) -> None:
+def _grid_query(q: NDArray[np.float64], spts: NDArray[np.float64], order: NDArray[np.int64], inv_h: float,
+                origin: NDArray[np.int64], dims: NDArray[np.int64], dense: NDArray[np.int32],
+                tk: NDArray[np.int64], tv: NDArray[np.int64], starts: NDArray[np.int64], r2: float,
+                nearest: bool, out: NDArray[np.int64]) -> None:
     """For each query point, the index of its nearest cloud point with squared distance < r2
     (-1 if none); ``nearest=False`` stops at the first such point (existence only).
 
     Cells are twice the radius: the ball around a point lies in the 2 x 2 x 2 cells nearest to
-    it (per axis, its own cell and the neighbour on the side of the half it is in)."""
-    lim = float(_GRID_LIM)
+    it (per axis, its own cell and the neighbour on the side of the half it is in). A cell is
+    found in ``dense`` (a full table over the cloud's box) when it is given, else in the hash."""
+    use_dense = len(dense) > 0
     for a in range(q.shape[0]):
         qx, qy, qz = q[a, 0], q[a, 1], q[a, 2]
-        ux = qx / h
-        uy = qy / h
-        uz = qz / h
+        ux = qx * inv_h
+        uy = qy * inv_h
+        uz = qz * inv_h
         fx = np.floor(ux)
         fy = np.floor(uy)
         fz = np.floor(uz)
@@ -110,7 +113,7 @@ def _grid_query(q: NDArray[np.float64], pts: NDArray[np.float64], h: float, orig
         gx = fx - origin[0]
         gy = fy - origin[1]
         gz = fz - origin[2]
-        if not (gx >= -1.0 and gx <= lim and gy >= -1.0 and gy <= lim and gz >= -1.0 and gz <= lim):
+        if not (gx >= -1.0 and gx <= dims[0] and gy >= -1.0 and gy <= dims[1] and gz >= -1.0 and gz <= dims[2]):
             continue  # also NaN: farther than a cell from the cloud
         cx, cy, cz = int(gx), int(gy), int(gz)
         sx = 1 if ux - fx >= 0.5 else -1
@@ -122,23 +125,26 @@ def _grid_query(q: NDArray[np.float64], pts: NDArray[np.float64], h: float, orig
             x = cx + (sx if c8 & 1 else 0)
             y = cy + (sy if c8 & 2 else 0)
             z = cz + (sz if c8 & 4 else 0)
-            if x < 0 or y < 0 or z < 0 or x >= _GRID_LIM or y >= _GRID_LIM or z >= _GRID_LIM:
+            if x < 0 or y < 0 or z < 0 or x >= dims[0] or y >= dims[1] or z >= dims[2]:
                 continue
-            c = _lookup(tk, tv, (x << (2 * _GRID_BITS)) | (y << _GRID_BITS) | z)
+            if use_dense:
+                c = dense[(x * dims[1] + y) * dims[2] + z]
+            else:
+                c = _lookup(tk, tv, (x << (2 * _GRID_BITS)) | (y << _GRID_BITS) | z)
             if c < 0:
                 continue
             for s in range(starts[c], starts[c + 1]):
-                p = order[s]
-                d0 = qx - pts[p, 0]
-                d1 = qy - pts[p, 1]
-                d2 = qz - pts[p, 2]
+                d0 = qx - spts[s, 0]
+                d1 = qy - spts[s, 1]
+                d2 = qz - spts[s, 2]
                 d = d0 * d0 + d1 * d1 + d2 * d2
                 if d < best:
                     best = d
-                    bi = p
+                    bi = s
             if bi >= 0 and not nearest:
                 break
-        out[a] = bi
+        if bi >= 0:
+            out[a] = order[bi]
 
 
 @nb.njit(cache=True)
@@ -165,16 +171,17 @@ def _occupied_hits(q: NDArray[np.float64], voxel: float, origin: NDArray[np.floa
 
 
 class CellHash:
-    """Points of one cloud bucketed by cells of size ``radius`` (slightly more), hashed by cell.
+    """Points of one cloud bucketed by cells of twice the radius (slightly more), found through
+    a dense table over the cloud's box when that is small (<= ``_DENSE_MAX`` cells), else a hash.
 
     ``query(q)`` returns what ``cKDTree(points).query(q, k=1, distance_upper_bound=radius)[1]``
     returns, with -1 for "none within the radius" instead of ``len(points)``."""
 
     def __init__(self, points: NDArray[np.float64], radius: float) -> None:
-        self.points = points
         self.radius = float(radius)
         self.h = 2.0 * self.radius * (1.0 + _GRID_MARGIN)
-        c = np.floor(points / self.h)
+        self.inv_h = 1.0 / self.h
+        c = np.floor(points * self.inv_h)
         # Coordinates that the cell keys or the rounding margin cannot represent: no hash.
         self.ok = bool(len(points) and np.all(np.isfinite(c)) and np.abs(c).max() < 2.0**28)
         if not self.ok:
@@ -182,23 +189,33 @@ class CellHash:
         ci = c.astype(np.int64)
         self.origin = ci.min(axis=0) - 1
         ci -= self.origin
-        if ci.max() >= _GRID_LIM - 2:
+        self.dims = ci.max(axis=0) + 2
+        if self.dims.max() >= _GRID_LIM:
             self.ok = False
             return
         key = (ci[:, 0] << (2 * _GRID_BITS)) | (ci[:, 1] << _GRID_BITS) | ci[:, 2]
         self.order = np.argsort(key, kind="stable")
+        self.points = np.ascontiguousarray(points[self.order], dtype=np.float64)  # cell by cell
         ks = key[self.order]
         first = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
         self.starts = np.r_[first, len(ks)].astype(np.int64)
-        self.tk, self.tv = _hash_table(ks[first])
+        empty = np.zeros(0, np.int64)
+        if np.prod(self.dims.astype(float)) <= _DENSE_MAX:
+            cc = ci[self.order[first]]
+            self.dense = np.full(int(np.prod(self.dims)), -1, np.int32)
+            self.dense[(cc[:, 0] * self.dims[1] + cc[:, 1]) * self.dims[2] + cc[:, 2]] = np.arange(len(first))
+            self.tk, self.tv = empty, empty
+        else:
+            self.dense = np.zeros(0, np.int32)
+            self.tk, self.tv = _hash_table(ks[first])
 
     def query(self, q: NDArray[np.float64], nearest: bool = True) -> NDArray[np.int64]:
         """Index of the nearest point strictly within the radius (-1: none); ``nearest=False``:
         any point within the radius (enough to count explained points)."""
         q = np.ascontiguousarray(q, dtype=np.float64).reshape(-1, 3)
         out = np.empty(len(q), np.int64)
-        _grid_query(q, self.points, self.h, self.origin, self.order, self.starts, self.tk, self.tv,
-                    self.radius * self.radius, nearest, out)
+        _grid_query(q, self.points, self.order, self.inv_h, self.origin, self.dims, self.dense,
+                    self.tk, self.tv, self.starts, self.radius * self.radius, nearest, out)
         return out
 
 
@@ -356,7 +373,7 @@ class EvidenceCache:
     place, call :meth:`clear`. At most ``max_entries`` clouds (least recently used dropped).
     """
 
-    def __init__(self, max_entries: int = 128) -> None:
+    def __init__(self, max_entries: int = 64) -> None:
         self.max_entries = max_entries
         self._lock = threading.Lock()
         self._entries: OrderedDict[tuple, tuple] = OrderedDict()

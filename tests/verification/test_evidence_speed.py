@@ -142,3 +142,16 @@ def test_evidence_cache_reuses_a_set_and_never_confuses_sets():
     for seed in range(1, 6):  # bounded
         cache.support_cloud(_with_support(make_scene_pair(5, 10, seed=seed).target, seed))
     assert len(cache) <= 4
+
+
+def test_dense_table_and_hash_give_the_same_neighbours(monkeypatch):
+    rng = np.random.default_rng(3)
+    P = _cloud(rng, 600, 10.0, 12.5)
+    Q = P + rng.normal(scale=0.4, size=P.shape)
+    dense = E.CellHash(P, 0.3)
+    monkeypatch.setattr(E, "_DENSE_MAX", 0)
+    hashed = E.CellHash(P, 0.3)
+    assert len(dense.dense) > 0 and len(hashed.dense) == 0
+    ref = _kd_idx(P, Q, 0.3)
+    np.testing.assert_array_equal(dense.query(Q), ref)
+    np.testing.assert_array_equal(hashed.query(Q), ref)
