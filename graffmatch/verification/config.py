@@ -61,6 +61,12 @@ class VerificationConfig(BaseModel):
     min_landmarks_explained: int = Field(
         6, ge=1, description="without support points: fewest landmarks that must land on a counterpart"
     )
+    min_translation_redundancy: float = Field(
+        0.1, ge=0,
+        description="without support points: every translation direction must be constrained, and every "
+        "horizontal one with any one explained landmark left out (information eigenvalue >= this; chosen "
+        "on fuzz seed 1 of bench/fuzz_validity.py, reported on seed 0)",
+    )
     confidence_coef: tuple[float, float, float] = Field(
         (-7.722, 30.183, 2.677),
         description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio)), fitted on "

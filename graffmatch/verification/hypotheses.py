@@ -84,6 +84,34 @@ def reassociate(
     return A[sel]
 
 
+def translation_redundancy(
+    target: LandmarkSet, associations: NDArray[np.int64],
+) -> tuple[float, NDArray[np.float64], float, NDArray[np.float64]]:
+    """How well explained landmarks pin the translation, and whether any one of them is spared.
+
+    Each association constrains the translation along its target landmark's normal (plane),
+    across its axis (line) or fully (point); the information matrix is the sum of those
+    projectors. Returns (its smallest eigenvalue and direction; the smallest horizontal
+    eigenvalue with any single association left out, and its direction). A direction held by
+    one landmark alone has a zero residual whatever that landmark is matched to, so a wrong
+    match there is invisible: a translation off by metres along it explains as much.
+    Horizontal only (frames are z-up): the height usually rests on the one ground plane.
+    """
+    if len(associations) == 0:
+        e = np.array([1.0, 0.0, 0.0])
+        return 0.0, e, 0.0, e
+    b = associations[:, 1]
+    ty, d = target.types[b], target.directions[b]
+    P = np.einsum("ki,kj->kij", d, d)
+    C = np.where((ty == LandmarkType.PLANE)[:, None, None], P,
+                 np.where((ty == LandmarkType.LINE)[:, None, None], np.eye(3) - P, np.eye(3)))
+    M = C.sum(axis=0)
+    w, V = np.linalg.eigh(M)
+    wl, Vl = np.linalg.eigh((M[None] - C)[:, :2, :2])  # every leave-one-out matrix at once
+    k = int(np.argmin(wl[:, 0]))
+    return float(max(w[0], 0.0)), V[:, 0], float(max(wl[k, 0], 0.0)), np.r_[Vl[k, :, 0], 0.0]
+
+
 def candidate_cliques(
     W: sp.csr_matrix, winner: NDArray[np.int64], cfg: VerificationConfig, solver: ClipperConfig,
 ) -> list[Candidate]:

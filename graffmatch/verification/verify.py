@@ -37,6 +37,7 @@ from graffmatch.verification.hypotheses import (
     consistent_with,
     reassociate,
     rival_cliques,
+    translation_redundancy,
 )
 
 
@@ -128,6 +129,28 @@ def _refine(best: Hypothesis, source: LandmarkSet, target: LandmarkSet, associat
     best.kappa = float(b.kappa[0])
 
 
+def _check_translation(verdict: Verdict, source: LandmarkSet, target: LandmarkSet,
+                       associations: NDArray[np.int64], cfg: VerificationConfig) -> None:
+    """Landmark-level evidence cannot see a translation error along a direction that no
+    explained landmark constrains, nor one that a single explained landmark holds (its residual
+    is zero whatever it is matched to): invalid unless every direction is constrained and every
+    horizontal one survives leaving any one explained landmark out."""
+    best = verdict.best
+    A = reassociate(source, target, associations, best.T_target_source, cfg.landmark_deg, cfg.landmark_m)
+    full, weak, loo, weak_loo = translation_redundancy(target, A)
+    best.info["translation_information"] = (full, loo)
+    tau = cfg.min_translation_redundancy
+    for value, d, what in ((full, weak, "unconstrained"), (loo, weak_loo, "held by a single landmark")):
+        if value < tau:
+            d = d * np.sign(d[np.argmax(np.abs(d))])
+            verdict.valid = False
+            verdict.problems.append(
+                f"translation along ({d[0]:.2f}, {d[1]:.2f}, {d[2]:.2f}) {what} without support points "
+                f"(information {value:.2f} < {tau:.2f})"
+            )
+            return
+
+
 def score_hypotheses(
     hyps: list[Hypothesis], source: LandmarkSet, target: LandmarkSet, ev: Evidence,
     cfg: VerificationConfig, exact: bool,
@@ -209,4 +232,6 @@ def verify_graph(
         t6 = time.perf_counter()
         _refine(verdict.best, source, target, associations, kappa_max, gate, min_associations, ev, cfg)
         tm["registration"] += time.perf_counter() - t6
+    if not ev.has_points and verdict.best is not None:
+        _check_translation(verdict, source, target, associations, cfg)
     return verdict, merged

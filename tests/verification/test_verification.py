@@ -90,8 +90,8 @@ def test_pole_only_scenes_register(seed):
     assert r < 1.5 and dxy < 0.5
     if res.valid:
         assert not _wrong(res, sc.T_target_source)
-    else:
-        assert "ambiguous" in res.message
+    else:  # the rival along the poles, or the height that no explained landmark constrains
+        assert "ambiguous" in res.message or "1.00) unconstrained" in res.message, res.message
 
 
 def test_register_batch_equals_single_registrations():
@@ -144,6 +144,42 @@ def test_fuzz_valid_results_are_right(seed, n_poles, n_planes, n_outliers, overl
     if res.valid:
         assert unit == 1.0, f"valid for a source in the wrong unit ({unit}): {res.message}"
         assert not _wrong(res, T), (transform_errors(res.T_target_source, T), res.message)
+
+
+def _corridor(n_walls: int) -> LandmarkSet:
+    """Walls facing +-y along a corridor, a ground and a roof: nothing fixes x."""
+    ys = np.linspace(-8, 8, n_walls)
+    types = [2] * (n_walls + 2)
+    dirs = [[0, 1, 0]] * n_walls + [[0, 0, 1]] * 2
+    anchors = [[0.0, y, 2.0] for y in ys] + [[0, 0, 0], [0, 0, 6]]
+    return LandmarkSet.from_arrays(types, dirs, anchors, {"extent": np.full(n_walls + 2, 400.0)})
+
+
+def test_translation_along_an_unconstrained_direction_is_not_valid():
+    """Without support points, landmark evidence cannot see a slide along a direction no
+    explained landmark constrains: the message names the direction (bench/fuzz_validity.py's
+    valid-and-wrong results were all such slides)."""
+    tgt = _corridor(8)
+    T = make_transform(rot_z(np.radians(20)), [3.0, 1.0, 0.0])
+    res = GraffMatcher().match(tgt.transform(invert(T)), tgt)
+    assert not res.valid
+    assert "(1.00, 0.00, 0.00) unconstrained" in res.message.replace("-0.00", "0.00"), res.message
+
+
+def test_translation_redundancy_counts_constraints_and_leaves_one_out():
+    from graffmatch.verification.hypotheses import translation_redundancy
+
+    tgt = LandmarkSet.from_arrays([2, 2, 2, 1], [[1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, 1]],
+                                  np.zeros((4, 3)))
+    A = np.c_[np.arange(4), np.arange(4)]
+    full, _, loo, weak = translation_redundancy(tgt, A)
+    assert full == pytest.approx(1.0)  # z: the one horizontal plane
+    assert loo == pytest.approx(1.0)  # x and y: a wall and the pole each
+    full, weak_full, loo, weak = translation_redundancy(tgt, A[[0, 1, 2]])  # no pole
+    assert full == pytest.approx(1.0) and loo == pytest.approx(0.0)
+    assert abs(weak[0]) == pytest.approx(1.0) or abs(weak[1]) == pytest.approx(1.0)
+    full, weak_full, _, _ = translation_redundancy(tgt, A[[1, 2]])  # nothing along x
+    assert full == pytest.approx(0.0) and abs(weak_full[0]) == pytest.approx(1.0)
 
 
 def test_two_true_landmarks_and_outliers_are_not_valid():
