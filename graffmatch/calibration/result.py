@@ -31,9 +31,11 @@ CALIBRATION_RHO = 4.0
 
 def _plane_matcher_config() -> GraffMatchConfig:
     # A board rig has a handful of planes and no support points: verification may rest on 4
-    # explained boards (the calibration adds its own residual and normal-spread gates).
+    # explained boards, without a spare board per direction, in a frame that need not be z-up
+    # (the calibration adds its own residual and normal-spread gates).
     return GraffMatchConfig(landmark_types=["plane"], rho=CALIBRATION_RHO,
-                            verification=VerificationConfig(min_landmarks_explained=4))
+                            verification=VerificationConfig(min_landmarks_explained=4,
+                                                            min_translation_redundancy=0.0))
 
 
 class CalibrationConfig(BaseModel):
