@@ -112,6 +112,24 @@ def clique_objective(W: sp.csr_matrix, sel: NDArray[np.int64]) -> float:
     return float(_clique_objective(indptr, indices, data, np.asarray(sel, np.int64), W.shape[0]))
 
 
+def clique_objectives(W: sp.csr_matrix, cliques: list[NDArray[np.int64]]) -> NDArray[np.float64]:
+    """:func:`clique_objective` of many selections in one compiled call (same arithmetic)."""
+    if not cliques:
+        return np.zeros(0)
+    indptr, indices, data = _csr64(W)
+    flat = np.concatenate([np.asarray(c, np.int64).reshape(-1) for c in cliques])
+    off = np.r_[0, np.cumsum([len(c) for c in cliques])].astype(np.int64)
+    return _objectives(indptr, indices, data, flat, off, W.shape[0])
+
+
+@nb.njit(cache=True)
+def _objectives(indptr, indices, data, flat, off, m):
+    out = np.zeros(len(off) - 1)
+    for i in range(len(off) - 1):
+        out[i] = _clique_objective(indptr, indices, data, flat[off[i]:off[i + 1]], m)
+    return out
+
+
 def _csr64(W: sp.csr_matrix) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
     """(indptr, indices, data) as int64 / int64 / float64, converted once per graph: verification
     calls the kernels above dozens of times on one (float32, int32) graph, and converting it on

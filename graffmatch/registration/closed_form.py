@@ -26,6 +26,7 @@ reason: the compiled kernel and the reference it falls back to must stay side by
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numba as nb
@@ -126,6 +127,29 @@ def _seed_pairs(ds: Array, w: Array, g: NDArray[np.int64], G: int) -> tuple[Arra
     return first, second
 
 
+_DIRECTIONS: OrderedDict[tuple[int, int], tuple[Array, NDArray[np.int8], Array]] = OrderedDict()
+
+
+def _directions_of(ls: LandmarkSet) -> Array:
+    """``ls.directions`` (a cross product per plane), computed once per set of bases: one
+    verification registers the same two sets 4-5 times. Keyed by the identity of ``bases`` and
+    ``types`` and checked against copies of them, so a reused id or bases changed in place are
+    recomputed; at most 32 sets. The returned array is shared: read it, never write it."""
+    key = (id(ls.bases), id(ls.types))
+    e = _DIRECTIONS.get(key)
+    if e is not None and np.array_equal(e[0], ls.bases) and np.array_equal(e[1], ls.types):
+        return e[2]
+    d = ls.directions
+    d.setflags(write=False)
+    _DIRECTIONS[key] = (ls.bases.copy(), ls.types.copy(), d)
+    while len(_DIRECTIONS) > 32:
+        try:
+            _DIRECTIONS.popitem(last=False)
+        except KeyError:  # emptied meanwhile by another thread
+            break
+    return d
+
+
 def _register_batch_reference(
     source: LandmarkSet,
     target: LandmarkSet,
@@ -182,8 +206,8 @@ def _register_batch_reference(
     inv = np.empty(k, np.int64)
     inv[order] = np.arange(k)
     A, g, w, ts = A[order], g[order], w[order], ts[order]
-    ds = source.directions[A[:, 0]]
-    dt = target.directions[A[:, 1]]
+    ds = _directions_of(source)[A[:, 0]]
+    dt = _directions_of(target)[A[:, 1]]
     bs = source.anchors[A[:, 0]]
     bt = target.anchors[A[:, 1]]
     is_dir = ts > 0
@@ -987,8 +1011,8 @@ def _register_batch_numba(
     reasons = np.zeros(G, np.int64)
     _register_kernel(
         bounds, ws, ts[order].astype(np.int64),
-        np.ascontiguousarray(source.directions[As[:, 0]], dtype=np.float64),
-        np.ascontiguousarray(target.directions[As[:, 1]], dtype=np.float64),
+        np.ascontiguousarray(_directions_of(source)[As[:, 0]], dtype=np.float64),
+        np.ascontiguousarray(_directions_of(target)[As[:, 1]], dtype=np.float64),
         np.ascontiguousarray(source.anchors[As[:, 0]], dtype=np.float64),
         np.ascontiguousarray(target.anchors[As[:, 1]], dtype=np.float64),
         float(parallel_spread), float(line_anchor_weight), float(weak_ratio),

@@ -369,8 +369,9 @@ class EvidenceCache:
     Keyed by the *identity* of the set's support arrays (``points``, ``point_offsets`` and the
     ``is_ground`` attribute), held by weak references: an entry lives no longer than those
     arrays, a new set (``ls[keep]``, a loaded file) never sees another's cloud, and the cache
-    keeps no scan alive. Treat a matched set's point arrays as read-only; after changing them in
-    place, call :meth:`clear`. At most ``max_entries`` clouds (least recently used dropped).
+    keeps no scan alive. A hit is also checked against copies of those arrays (a few tens of
+    microseconds), so arrays changed in place are never served a stale cloud. At most
+    ``max_entries`` clouds (least recently used dropped).
     """
 
     def __init__(self, max_entries: int = 64) -> None:
@@ -393,7 +394,9 @@ class EvidenceCache:
         with self._lock:
             e = self._entries.get(key)
             if e is not None and all((r is None and a is None) or (r is not None and r() is a)
-                                     for r, a in zip(e[0], arrays, strict=True)):
+                                     for r, a in zip(e[0], arrays, strict=True)) and all(
+                    (c is None and a is None) or (c is not None and np.array_equal(c, a))
+                    for c, a in zip(e[2], arrays, strict=True)):
                 if key in self._entries:  # (a GC callback may have dropped it meanwhile)
                     self._entries.move_to_end(key)
                 self.hits += 1
@@ -403,7 +406,7 @@ class EvidenceCache:
         with self._lock:
             self.misses += 1
             self._entries.pop(key, None)
-            self._entries[key] = (refs, cloud)
+            self._entries[key] = (refs, cloud, tuple(None if a is None else a.copy() for a in arrays))
             while len(self._entries) > self.max_entries:
                 self._entries.popitem(last=False)
         return cloud

@@ -11,7 +11,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from graffmatch.association.clipper import ClipperConfig
-from graffmatch.association.cliques import clique_objective
+from graffmatch.association.cliques import clique_objectives
 from graffmatch.errors import DegenerateGeometryError
 from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.registration.closed_form import register_batch
@@ -74,9 +74,10 @@ def _register(
     except DegenerateGeometryError:
         return []
     bounds = np.r_[0, np.cumsum([len(c.vertices) for c in cands])]
+    objectives = clique_objectives(W, [c.vertices for c in cands])
     hyps = []
     for i, c in enumerate(cands):
-        h = Hypothesis(b.T_target_source[i], assoc[c.vertices], c.origin, clique_objective(W, c.vertices),
+        h = Hypothesis(b.T_target_source[i], assoc[c.vertices], c.origin, float(objectives[i]),
                        float(b.kappa[i]), bool(b.degenerate[i]))
         sl = slice(bounds[i], bounds[i + 1])
         h.info["vertices"] = c.vertices

@@ -221,3 +221,16 @@ def test_deterministic():
     a, b = cf.register_batch(sc.source, sc.target, A, g), cf.register_batch(sc.source, sc.target, A, g)
     for name in ("T_target_source", "kappa", "cost", "offset_residuals", "signs"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+def test_directions_cache_follows_bases_changed_in_place():
+    """register_batch caches each set's directions; bases edited in place are noticed."""
+    sc = make_scene_pair(10, 20, seed=2)
+    A = sc.true_matches
+    before = cf.register_batch(sc.source, sc.target, A).T_target_source[0]
+    R = random_transform(np.random.default_rng(0))[:3, :3]
+    sc.source.bases[:] = R @ sc.source.bases  # rotate every basis, same array object
+    after = cf.register_batch(sc.source, sc.target, A).T_target_source[0]
+    fresh = cf._register_batch_reference(sc.source, sc.target, A).T_target_source[0]
+    np.testing.assert_allclose(after[:3, :3], fresh[:3, :3], atol=1e-9)
+    assert np.abs(after[:3, :3] - before[:3, :3]).max() > 1e-3

@@ -144,6 +144,16 @@ def test_evidence_cache_reuses_a_set_and_never_confuses_sets():
     assert len(cache) <= 4
 
 
+def test_evidence_cache_notices_points_changed_in_place():
+    cache = E.EvidenceCache()
+    source = _with_support(make_scene_pair(15, 30, seed=1).source, 1)
+    a = cache.support_cloud(source)
+    source.points[:] += 100.0  # same array objects, new content
+    b = cache.support_cloud(source)
+    assert b is not a
+    np.testing.assert_array_equal(b.points, E.support_cloud(source).points)
+
+
 def test_dense_table_and_hash_give_the_same_neighbours(monkeypatch):
     rng = np.random.default_rng(3)
     P = _cloud(rng, 600, 10.0, 12.5)
