@@ -50,14 +50,16 @@ class GraffMatchConfig(BaseModel):
     )
     solver: ClipperConfig = Field(
         default_factory=lambda: ClipperConfig(greedy_starts=64, d_schedule="mean", rescale_u0=True,
-                                              tol_u=1e-3, tol_F=1e-4, line_search="exact"),
+                                              tol_u=1e-3, tol_F=1e-4, line_search="backtracking_linear"),
         description=(
             "CLIPPER settings; GraffMatch also lets 64 greedy cliques compete on the same "
             "densest-clique objective (greedy_starts=0 for CLIPPER alone), and uses the current "
             "reference C++ homotopy (mean d steps, rescaled start): 3-4x fewer mat-vecs on "
-            "~30 %-dense landmark graphs, same selections in bench/bench_matcher.py; the exact "
-            "line search halves them again (same selections on KITTI 0->5, W1/W2 x 8 seeds "
-            "and the 4 reference graphs of bench_solver.py)"
+            "~30 %-dense landmark graphs, same selections in bench/bench_matcher.py; the same "
+            "backtracking with one mat-vec per step instead of one per trial (20-35 % fewer, "
+            "same selections: bench/solver_selections.py). line_search='exact' halves them but "
+            "changed 3 of 16 W2 selections (denser cliques, one true association fewer in 2), "
+            "so it is not the default"
         ),
     )
     gating: GatingConfig = Field(
