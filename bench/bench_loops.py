@@ -41,6 +41,39 @@ def simulate(root: Path, n_scans: int) -> list[Path]:
     return out
 
 
+def _strip_curves(res: list[dict]) -> list[dict]:
+    for r in res:
+        for k in list(r):
+            if isinstance(r[k], dict) and "curve" in r[k]:
+                r[k] = {kk: vv for kk, vv in r[k].items() if kk != "curve"}
+    return res
+
+
+def merge(dirs: list[Path], json_path: Path | None) -> None:
+    """One table from several runs on the same scans, rows ordered by sequence, then run."""
+    from graffmatch.evaluation.sequence_benchmark import format_table, plot_pr
+
+    res, walls = [], {}
+    for d in dirs:
+        rows = json.loads((d / "results.json").read_text())
+        for r in rows:
+            r["run_dir"] = str(d)
+        res += rows
+        log = d / "wall_s.json"
+        if log.is_file():
+            walls[str(d)] = json.loads(log.read_text())
+    seq_order = list(dict.fromkeys(r["sequence"] for r in res))
+    res.sort(key=lambda r: (seq_order.index(r["sequence"]), [str(d) for d in dirs].index(r["run_dir"])))
+    (dirs[0].parent / "merged").mkdir(exist_ok=True)
+    plot_pr(res, dirs[0].parent / "merged")
+    table = format_table(res)
+    print(table)
+    if json_path:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps({"machine": machine(), "runs": walls, "table": table,
+                                         "results": _strip_curves(res)}, indent=1))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=Path("/tmp/loops_bench/data"))
@@ -51,7 +84,13 @@ def main() -> None:
     ap.add_argument("--no-courtyard", action="store_true")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--merge", type=Path, nargs="+", default=None,
+                    help="only merge the results.json of these --out folders (same scans, methods run "
+                    "in separate processes) into one table and --json")
     args = ap.parse_args()
+    if args.merge:
+        merge(args.merge, args.json)
+        return
 
     from graffmatch.evaluation.sequence_benchmark import benchmark_config, run_sequence_benchmark
 
@@ -65,12 +104,10 @@ def main() -> None:
     wall = time.perf_counter() - t0
     print(table)
     print(f"wall {wall:.0f} s, peak RSS {peak_rss_mb():.0f} MB (driver)")
+    if not args.prepare:
+        (args.out / "wall_s.json").write_text(json.dumps({"methods": methods, "wall_s": wall, **machine()}))
     if args.json and not args.prepare:
-        res = json.loads((args.out / "results.json").read_text())
-        for r in res:
-            for k in list(r):
-                if isinstance(r[k], dict) and "curve" in r[k]:
-                    r[k] = {kk: vv for kk, vv in r[k].items() if kk != "curve"}
+        res = _strip_curves(json.loads((args.out / "results.json").read_text()))
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"machine": machine(), "wall_s": wall, "table": table, "results": res}, indent=1))
 

@@ -61,7 +61,10 @@ def loops(
     output: Annotated[Path | None, typer.Option("--output", "-o", help="Results folder (rerun to resume).")] = None,
     kind: Annotated[str, typer.Option(help="Dataset kind for open_dataset (folder, kitti, kitti360, nclt).")] = "folder",
     retriever: Annotated[Retriever, typer.Option(help="Candidate retrieval.")] = Retriever.descriptor,
-    top_k: Annotated[int | None, typer.Option(min=1, help="Candidates verified per query.")] = None,
+    top_k: Annotated[int | None, typer.Option(min=1, help="Candidates retrieved per query (quick-checked).")] = None,
+    max_verified: Annotated[int | None, typer.Option(min=1, help="Verify at most this many per query.")] = None,
+    quick_check: Annotated[bool, typer.Option(help="Pre-screen candidates with the BEV quick check.")] = True,
+    all_loops: Annotated[bool, typer.Option(help="Verify every candidate (no stop at the first accepted).")] = False,
     exclude_seconds: Annotated[float | None, typer.Option(min=0, help="Skip scans this recent (s).")] = None,
     exclude_frames: Annotated[int | None, typer.Option(min=0, help="Also skip this many recent scans.")] = None,
     radius: Annotated[float | None, typer.Option(min=0, help="Radius retriever: search radius (m).")] = None,
@@ -89,6 +92,10 @@ def loops(
             setattr(cfg.retrieval, field, value)
     if min_confidence is not None:
         cfg.verification.min_confidence = min_confidence
+    if max_verified is not None:
+        cfg.verification.max_verified = max_verified
+    cfg.verification.quick_check = quick_check
+    cfg.verification.stop_when_accepted = not all_loops
     cfg = LoopDetectorConfig.model_validate(cfg.model_dump())
     out_dir = output or run_dir(STATE.runs_dir, "loops")
     odo = None

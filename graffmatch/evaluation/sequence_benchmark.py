@@ -117,7 +117,7 @@ def evaluate_method(run: MethodRun, poses: Array, timestamps: Array, retrieval: 
     pose_ok = (errs[:, 1] <= E2E_DEG) & (errs[:, 2] <= E2E_M)
     out["pose_correct_any_distance"] = pr_metrics(pose_ok, conf, int(pos5.sum()))
     if run.candidates:
-        for k in (1, 5, 10):
+        for k in (1, 5, 10, 20):
             hits = []
             P = poses[:, :3, 3]
             for q in np.flatnonzero(pos5):
@@ -147,7 +147,12 @@ def run_ours(dataset, out_dir: Path, config: LoopDetectorConfig | None = None, w
         "ours (GraffMatch loops)", preds,
         (summary["verify_ms_per_query"] + summary["retrieve_ms_per_query"]) / 1e3,
         summary["database_bytes_per_scan"], cands,
-        note=f"retrieval {cfg.retrieval.method} top-{cfg.retrieval.top_k}; extraction excluded from the time",
+        note=f"retrieval {cfg.retrieval.method} top-{cfg.retrieval.top_k}, "
+        f"{'BEV quick check, ' if cfg.verification.quick_check else ''}"
+        f"at most {cfg.verification.max_verified} verified"
+        f"{', stop at the first accepted' if cfg.verification.stop_when_accepted else ''}; "
+        f"{summary['n_candidates_verified'] / max(summary['n_scans'], 1):.2f} verified a query; "
+        "extraction and per-scan indexing excluded from the time",
     )
 
 
@@ -179,7 +184,8 @@ def run_scan_context_icp(dataset, retrieval: RetrievalConfig, icp: bool = True,
         if progress:
             progress("scan context", i + 1, n)
     desc_s = time.perf_counter() - t0
-    r = ScanContextRetriever(retrieval.model_copy(update={"top_k": max(retrieval.top_k, 10)}))
+    # its own 10 ring-key neighbours re-ranked by the SC distance, whatever ours retrieves
+    r = ScanContextRetriever(retrieval.model_copy(update={"top_k": 10, "ring_key_candidates": 10}))
     preds, cands = [], {}
     t1 = time.perf_counter()
     for q in range(n):
@@ -249,9 +255,12 @@ def run_sequence_benchmark(
             elif m == "mapclosures-gt":
                 run = run_mapclosures_gt(ds, cfg.retrieval, progress=progress)
             elif m == "mapclosures":
-                run = run_mapclosures(ds, cfg.retrieval, progress=progress)
+                run = run_mapclosures(ds, cfg.retrieval, progress=progress,
+                                      name="MapClosures (defaults: KISS-ICP odometry, 100 m maps)")
             else:
-                raise InvalidInputError(f"unknown method {m!r}; choose ours, scan-context-icp, mapclosures-gt")
+                raise InvalidInputError(
+                    f"unknown method {m!r}; choose ours, scan-context-icp, mapclosures, mapclosures-gt"
+                )
             res = evaluate_method(run, poses, times, cfg.retrieval)
             res["sequence"] = ds.name
             res["n_scans"] = len(ds)
@@ -263,11 +272,11 @@ def run_sequence_benchmark(
 
 def format_table(results: list[dict]) -> str:
     head = ("| sequence | scans | method | pos. queries (5 m) | place F1-max 3/5/10 m | place R@100%P 5 m | "
-            "e2e F1-max | e2e R@100%P | retrieval R@1/5 | ms/query | B/scan |")
+            "e2e F1-max | e2e R@100%P | retrieval R@1/5/10/20 | ms/query | B/scan |")
     lines = [head, "|" + "---|" * 11]
     for r in results:
         pl = "/".join(f"{r[f'place_{d:g}m']['f1_max']:.2f}" for d in PLACE_THRESHOLDS_M)
-        rr = "/".join(f"{r.get(f'retrieval_recall@{k}', float('nan')):.2f}" for k in (1, 5))
+        rr = "/".join(f"{r.get(f'retrieval_recall@{k}', float('nan')):.2f}" for k in (1, 5, 10, 20))
         b = r["bytes_per_scan"]
         lines.append(
             f"| {r['sequence']} | {r['n_scans']} | {r['method']} | {r['place_5m']['n_positive_queries']} | {pl} | "

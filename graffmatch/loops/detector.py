@@ -21,8 +21,9 @@ from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.lidar.extractor import LandmarkExtractor, LandmarkExtractorConfig
 from graffmatch.loops.database import LandmarkDatabase
 from graffmatch.loops.descriptor import DescriptorConfig, landmark_descriptor
+from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_index
 from graffmatch.loops.retrieval import RetrievalConfig, eligible_count, make_retriever
-from graffmatch.loops.verify import LoopClosure, VerificationConfig, verify_candidate
+from graffmatch.loops.verify import LoopClosure, VerificationConfig, verify_query
 from graffmatch.matcher import GraffMatchConfig
 from graffmatch.pipeline import ScanMatcher, ScanMatcherConfig
 
@@ -38,6 +39,7 @@ class LoopDetectorConfig(BaseModel):
     descriptor: DescriptorConfig = Field(default_factory=DescriptorConfig)
     retrieval: RetrievalConfig = Field(default_factory=RetrievalConfig)
     verification: VerificationConfig = Field(default_factory=VerificationConfig)
+    quick: QuickCheckConfig = Field(default_factory=QuickCheckConfig)
 
 
 class LoopDetector:
@@ -103,7 +105,20 @@ class LoopDetector:
         self.timings["extract"].append(time.perf_counter() - t0)
         extra = {"scan_context": sc} if sc is not None else {}
         q = self.db.add(ls, desc, timestamp, position, **extra)
+        if self.config.verification.quick_check:  # per-scan precomputation, with the extraction
+            t_q = time.perf_counter()
+            self.quick_index(q)
+            self.timings["extract"][-1] += time.perf_counter() - t_q
         return self.detect(q)
+
+    def quick_index(self, i: int) -> QuickIndex:
+        """The BEV quick-check index of scan i, computed once and kept in the database."""
+        cache = self.db.extra.setdefault("quick", [])
+        if len(cache) < len(self.db):
+            cache.extend([None] * (len(self.db) - len(cache)))
+        if cache[i] is None:
+            cache[i] = quick_index(self.db.landmarks[i], self.config.quick)
+        return cache[i]
 
     def detect(self, query: int) -> list[LoopClosure]:
         """Retrieve and verify the candidates of a scan already in the database."""
@@ -112,25 +127,28 @@ class LoopDetector:
         idx, dist = self.retriever.candidates(self.db, query, m)
         t2 = time.perf_counter()
         self.timings["retrieve"].append(t2 - t1)
+        recs = verify_query(
+            query, list(zip(idx.tolist(), dist.tolist(), strict=True)), self.db.landmarks.__getitem__,
+            self.quick_index, self.matcher, self.config.verification, self.config.quick,
+        )
         out = []
-        for rank, (j, d) in enumerate(zip(idx.tolist(), dist.tolist(), strict=True)):
-            v = verify_candidate(self.db.landmarks[query], self.db.landmarks[j], self.matcher, self.config.verification)
-            if v["T_match_query"] is None:
+        for r in recs:
+            if r["T"] is None:
                 continue
-            lc = LoopClosure(
+            out.append(LoopClosure(
                 query=query,
-                match=int(j),
-                T_match_query=v["T_match_query"],
-                confidence=v["confidence"],
-                overlap=v["overlap"],
-                n_associations=v["n_associations"],
-                n_agreeing=v["n_agreeing"],
-                retrieval_rank=rank,
-                retrieval_distance=float(d),
-                valid=v["confidence"] >= self.config.verification.min_confidence,
-                info={"message": v["message"], "seconds": v["seconds"], "rms_offset": v.get("rms_offset")},
-            )
-            out.append(lc)
+                match=r["match"],
+                T_match_query=np.asarray(r["T"], float).reshape(4, 4),
+                confidence=r["confidence"],
+                overlap=r["overlap"],
+                n_associations=r["n_associations"],
+                n_agreeing=r["n_agreeing"],
+                retrieval_rank=r["rank"],
+                retrieval_distance=r["retrieval_distance"],
+                valid=r["confidence"] >= self.config.verification.min_confidence,
+                info={"seconds": r["seconds"], "rms_offset": r["rms_offset"], "quick_score": r["quick_score"]},
+            ))
         self.timings["verify"].append(time.perf_counter() - t2)
         self.last_candidates = out
+        self.last_records = recs
         return sorted((c for c in out if c.valid), key=lambda c: -c.confidence)

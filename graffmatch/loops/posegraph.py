@@ -178,6 +178,8 @@ def kiss_icp_odometry(dataset) -> Array:
     cfg = KISSConfig()
     cfg.data.max_range = 100.0
     cfg.data.deskew = False
+    if cfg.mapping.voxel_size is None:  # what KISS-ICP's own load_config does
+        cfg.mapping.voxel_size = float(cfg.data.max_range / 100.0)
     odo = KissICP(cfg)
     n = len(dataset)
     poses = []

@@ -33,7 +33,11 @@ class RetrievalConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     method: RetrieverName = Field("descriptor", description="descriptor | scan-context | radius")
-    top_k: int = Field(5, ge=1, le=200, description="candidates verified per query")
+    top_k: int = Field(
+        20, ge=1, le=200,
+        description="candidates retrieved per query; all go through the quick check, at most "
+        "verification.max_verified are verified",
+    )
     exclude_seconds: float = Field(
         10.0, ge=0, description="skip scans newer than this before the query [s]"
     )

@@ -35,8 +35,9 @@ from graffmatch.evaluation.executors import make_executor
 from graffmatch.loops.database import LandmarkDatabase, load_landmarks, save_landmarks
 from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig
 from graffmatch.loops.io import loop_edges, write_g2o, write_kitti, write_loops_csv, write_tum
+from graffmatch.loops.quickcheck import QuickIndex, quick_index
 from graffmatch.loops.retrieval import eligible_count
-from graffmatch.loops.verify import LoopClosure, verify_candidate
+from graffmatch.loops.verify import LoopClosure, verify_query
 
 Progress = Callable[[str, int, int], None]
 LANDMARK_DIR = "landmarks"
@@ -93,34 +94,35 @@ def _verify_task(args: tuple[str, str, list[tuple[int, list[tuple[int, float]]]]
     config = LoopDetectorConfig.model_validate_json(config_json)
     det = LoopDetector(config)
     cache: dict[int, Any] = {}
+    quick: dict[int, QuickIndex] = {}
+    index_s = [0.0]
 
     def lm(i: int):
         if i not in cache:
             cache[i] = load_landmarks(Path(out_dir) / LANDMARK_DIR / f"{i:06d}.npz")
         return cache[i]
 
+    def qi(i: int) -> QuickIndex:
+        # per-scan precomputation (like the landmarks themselves): timed apart from the query
+        if i not in quick:
+            t = time.perf_counter()
+            quick[i] = quick_index(lm(i), config.quick)
+            index_s[0] += time.perf_counter() - t
+        return quick[i]
+
     records = []
     for q, cands in chunk:
+        if config.verification.quick_check:  # precompute before the query's clock starts
+            for j in [q, *(c for c, _ in cands)]:
+                qi(j)
+        lm(q)
+        for j, _ in cands:
+            lm(j)
         t0 = time.perf_counter()
-        recs = []
-        for rank, (j, dist) in enumerate(cands):
-            v = verify_candidate(lm(q), lm(j), det.matcher, config.verification)
-            T = v["T_match_query"]
-            recs.append(
-                {
-                    "match": int(j),
-                    "rank": rank,
-                    "retrieval_distance": float(dist),
-                    "T": None if T is None else np.asarray(T).ravel().tolist(),
-                    "confidence": v["confidence"],
-                    "overlap": v["overlap"],
-                    "n_associations": v["n_associations"],
-                    "n_agreeing": v["n_agreeing"],
-                    "rms_offset": v.get("rms_offset"),
-                    "seconds": v["seconds"],
-                }
-            )
+        recs = verify_query(q, cands, lm, qi, det.matcher, config.verification, config.quick)
         records.append({"query": int(q), "candidates": recs, "verify_s": time.perf_counter() - t0})
+    if records:
+        records[-1]["index_s"] = index_s[0]
     return records
 
 
@@ -308,14 +310,17 @@ def run_loops(
     loops = loops_from_records(done, config.verification.min_confidence)
     write_loops_csv(out / "loops.csv", loops)
     write_g2o(out / "loops.g2o", loop_edges(loops))  # vertices: posegraph.g2o (--optimize)
-    n_verified = sum(len(r["candidates"]) for r in done.values())
+    n_verified = sum(c.get("verified", True) for r in done.values() for c in r["candidates"])
+    n_retrieved = sum(len(r["candidates"]) for r in done.values())
     verify_cpu = sum(r["verify_s"] for r in done.values())
     summary = {
         "dataset": getattr(dataset, "name", "dataset"),
         "n_scans": n,
         "n_loops": len(loops),
         "n_queries_with_loop": len({lc.query for lc in loops}),
+        "n_candidates_retrieved": n_retrieved,
         "n_candidates_verified": n_verified,
+        "quick_index_cpu_s": sum(r.get("index_s", 0.0) for r in done.values()),
         "retrieval": config.retrieval.method,
         "top_k": config.retrieval.top_k,
         "min_confidence": config.verification.min_confidence,

@@ -11,6 +11,7 @@ own ``confidence`` (the verified matcher), that is combined with it.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from graffmatch.errors import GraffMatchError
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
+from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_check
 from graffmatch.matcher import GraffMatcher
 from graffmatch.pipeline import ScanMatcher
 
@@ -47,6 +49,33 @@ class VerificationConfig(BaseModel):
     )
     max_landmarks_per_type: int | None = Field(
         40, ge=2, description="match at most this many landmarks of a type (largest first)"
+    )
+    quick_check: bool = Field(
+        True, description="pre-screen candidates with the bird's-eye-view voting check (quickcheck.py)"
+    )
+    quick_min_fraction: float = Field(
+        0.4,
+        ge=0,
+        le=1,
+        description="verify only candidates whose quick-check inliers reach this fraction of the "
+        "smaller BEV map (every loop the matcher accepted on the benchmark drives had >= 0.5)",
+    )
+    quick_translation_margin_m: float = Field(
+        2.0,
+        ge=0,
+        description="with max_translation_m: skip candidates whose quick estimate is farther than "
+        "max_translation_m plus this [m] ...",
+    )
+    quick_translation_min_inliers: int = Field(
+        6, ge=1, description="... when that estimate has at least this many inliers"
+    )
+    max_verified: int = Field(
+        5, ge=1, description="verify at most this many of the retrieved candidates (best quick score first)"
+    )
+    stop_when_accepted: bool = Field(
+        True,
+        description="verify candidates best quick score first and stop at the first one that "
+        "reaches min_confidence (one loop a query); False: verify every candidate",
     )
 
 
@@ -110,6 +139,19 @@ def landmark_agreement(
     return agree, agree / min(len(source), len(target))
 
 
+def quick_gate(score: int, fraction: float, translation_m: float, config: VerificationConfig) -> bool:
+    """Whether a candidate with this quick-check result goes on to the verified matcher."""
+    if fraction < config.quick_min_fraction:
+        return False
+    if (
+        config.max_translation_m is not None
+        and score >= config.quick_translation_min_inliers
+        and translation_m > config.max_translation_m + config.quick_translation_margin_m
+    ):
+        return False
+    return True
+
+
 def verify_candidate(
     query: LandmarkSet,
     candidate: LandmarkSet,
@@ -163,3 +205,53 @@ def verify_candidate(
     out["seconds"] = time.perf_counter() - t0
     return out
 
+
+
+def verify_query(
+    query: int,
+    candidates: list[tuple[int, float]],
+    landmarks_of: Callable[[int], LandmarkSet],
+    quick_of: Callable[[int], QuickIndex] | None,
+    matcher: GraffMatcher | ScanMatcher,
+    config: VerificationConfig,
+    quick_config: QuickCheckConfig | None = None,
+) -> list[dict]:
+    """Pre-screen and verify the retrieved candidates of one query; one record a candidate.
+
+    With ``config.quick_check`` every candidate gets the quick BEV check (a fraction of a
+    millisecond) and only those passing :func:`quick_gate` are verified, best quick score first;
+    with ``stop_when_accepted`` verification stops at the first accepted candidate. Records keep
+    the retrieval order (``rank``); skipped candidates have ``verified`` False and no ``T``.
+    """
+    recs: list[dict] = []
+    for rank, (j, dist) in enumerate(candidates):
+        rec = {
+            "match": int(j), "rank": rank, "retrieval_distance": float(dist), "T": None,
+            "confidence": 0.0, "overlap": 0.0, "n_associations": 0, "n_agreeing": 0,
+            "rms_offset": None, "seconds": 0.0, "verified": False,
+        }
+        if config.quick_check and quick_of is not None:
+            t0 = time.perf_counter()
+            qi, ci = quick_of(query), quick_of(int(j))
+            score, est = quick_check(qi, ci, quick_config)
+            frac = score / max(1, min(qi.size, ci.size))
+            rec.update(quick_score=score, quick_fraction=float(frac),
+                       quick_translation_m=float(np.hypot(est[1], est[2])),
+                       seconds=time.perf_counter() - t0)
+            rec["quick_pass"] = quick_gate(score, frac, rec["quick_translation_m"], config)
+        else:
+            rec.update(quick_score=0, quick_pass=True)
+        recs.append(rec)
+    order = sorted((r for r in recs if r["quick_pass"]), key=lambda r: (-r["quick_score"], r["rank"]))
+    order = order[: config.max_verified]
+    for rec in order:
+        v = verify_candidate(landmarks_of(query), landmarks_of(rec["match"]), matcher, config)
+        T = v["T_match_query"]
+        rec.update(
+            T=None if T is None else np.asarray(T).ravel().tolist(), confidence=v["confidence"],
+            overlap=v["overlap"], n_associations=v["n_associations"], n_agreeing=v["n_agreeing"],
+            rms_offset=v.get("rms_offset"), seconds=rec["seconds"] + v["seconds"], verified=True,
+        )
+        if config.stop_when_accepted and v["confidence"] >= config.min_confidence:
+            break
+    return recs

@@ -92,8 +92,23 @@ def test_no_revisits_no_loops(drives):
     assert not _gt_positive_queries(ds, _config(), max_dist=16.0)
     assert summary["n_loops"] == 0
     assert read_loops_csv(out / "loops.csv") == []
-    # it did verify candidates: the absence of loops is a decision, not a skipped step
-    assert summary["n_candidates_verified"] >= 5 * (N_STRAIGHT - 31) - 10
+    # it did look at candidates: the absence of loops is a decision, not a skipped step
+    excl = _config().retrieval.exclude_frames
+    assert summary["n_candidates_retrieved"] == sum(min(20, max(0, q - excl)) for q in range(N_STRAIGHT))
+    # and the verified matcher itself, given every candidate (no quick check), accepts none
+    cfg = _config()
+    cfg.retrieval.top_k = 5
+    cfg.verification.quick_check = False
+    cfg.verification.stop_when_accepted = False
+    det = LoopDetector(cfg)
+    from graffmatch.loops.database import load_landmarks
+
+    n_verified, found = 0, []
+    for i in range(len(ds)):
+        found += det.add(load_landmarks(out / "landmarks" / f"{i:06d}.npz"), timestamp=float(ds.timestamps[i]))
+        n_verified += len(det.last_records)
+    assert n_verified >= 5 * (N_STRAIGHT - 31) - 10
+    assert found == []
 
 
 def test_rerun_resumes_from_cache_and_query_log(drives):

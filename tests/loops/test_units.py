@@ -164,3 +164,51 @@ def test_pose_graph_removes_drift_with_true_loops():
     bad = _loop(300, 20, _T(90, [30, 0, 0]))
     opt2, _ = optimize_pose_graph(odo, loop_edges([*edges, bad]))
     assert trajectory_errors(opt2, gt)["ate_rmse_m"] < before["ate_rmse_m"] / 2
+
+
+def test_quick_check_finds_a_moved_place_and_rejects_another():
+    """The BEV voting check: the same place seen after a yaw (incl. reverse direction), a
+    translation and a small tilt scores nearly every landmark and recovers the motion; an
+    unrelated place scores a small fraction; the index never depends on the query."""
+    from graffmatch.loops.quickcheck import quick_check, quick_index
+
+    a = _place(0)
+    ia = quick_index(a)
+    assert len(ia.poles) == 14 and len(ia.facade_angle) == 10
+    for yaw, t, tilt in ((0.0, [0, 0, 0], 0.0), (180.0, [3.0, -2.0, 0.1], 0.0), (73.0, [-4.0, 1.0, 0.0], 1.5)):
+        T = _T(yaw, t, tilt)  # pose of the second sensor in the first one's frame
+        b = a.transform(invert(T))
+        score, est = quick_check(quick_index(b), ia)
+        assert score >= 0.9 * ia.size, (yaw, score)
+        # est maps b's BEV into a's: the yaw and translation of T (levelling absorbs the tilt)
+        assert abs(np.angle(np.exp(1j * (est[0] - np.radians(yaw))))) < np.radians(3.0)
+        assert np.hypot(*(est[1:] - np.asarray(t[:2]))) < 0.5
+    other = quick_index(_place(1))
+    s_other, _ = quick_check(other, ia)
+    assert s_other < 0.4 * min(other.size, ia.size), s_other
+
+
+def test_quick_gate_and_early_stop_keep_the_accepted_candidate():
+    """verify_query: a candidate the quick check rejects is not verified; the true place is
+    verified first whatever its retrieval rank, and verification stops once it is accepted."""
+    from graffmatch.datasets.landmark_scene import make_scene_pair
+    from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig
+    from graffmatch.loops.quickcheck import quick_index
+    from graffmatch.loops.verify import verify_query
+
+    pair = make_scene_pair(seed=0, translation=(3.0, 1.0, 0.0))  # reverse direction, 3 m apart
+    maps = {0: pair.source, 1: make_scene_pair(seed=10).target, 2: make_scene_pair(seed=12).target,
+            3: pair.target}
+    det = LoopDetector(LoopDetectorConfig())
+    cands = [(1, 0.1), (2, 0.2), (3, 0.3)]  # the true place retrieved last
+    recs = verify_query(0, cands, maps.__getitem__, lambda i: quick_index(maps[i]), det.matcher,
+                        det.config.verification)
+    by = {r["match"]: r for r in recs}
+    assert [r["rank"] for r in recs] == [0, 1, 2]
+    assert by[3]["verified"] and by[3]["confidence"] >= 0.5
+    assert not by[1]["quick_pass"] and not by[1]["verified"] and by[1]["T"] is None
+    assert not by[2]["verified"] and by[3]["quick_score"] > 3 * max(by[1]["quick_score"], by[2]["quick_score"])
+    off = det.config.verification.model_copy(update={"quick_check": False, "stop_when_accepted": False})
+    recs_all = verify_query(0, cands, maps.__getitem__, None, det.matcher, off)
+    assert all(r["verified"] for r in recs_all)
+    assert max(recs_all, key=lambda r: r["confidence"])["match"] == 3

@@ -1,0 +1,139 @@
+"""Scale run of `graffmatch loops` (issue 15): one 5,000-scan simulated drive on this machine.
+
+    PYTHONPATH=$PWD nice -n 19 python bench/bench_loops_scale.py --json bench/results/loops_scale.json
+
+Simulates a 5 km suburban drive (seed 7, OS1-64, 1 m between scans; ~80 % of its scans revisit
+an earlier place), then runs ``run_loops`` on it with the default configuration and executor
+(local processes). Reports the wall time of each phase, the peak memory of the whole process
+tree (driver + workers, sampled every 0.5 s from /proc) and the database bytes per scan. The
+run is niced (it is long), so its wall times are upper bounds on a shared machine; the load
+average is sampled alongside.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import threading
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine, write_json
+
+
+def _tree_rss_mb(root: int) -> float:
+    """Resident memory of ``root`` and all its descendants [MB]."""
+    children: dict[int, list[int]] = {}
+    rss: dict[int, int] = {}
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as f:
+                parts = f.read().rsplit(")", 1)[1].split()
+            ppid, pages = int(parts[1]), int(parts[21])
+        except (OSError, IndexError, ValueError):
+            continue
+        children.setdefault(ppid, []).append(int(d))
+        rss[int(d)] = pages
+    total, stack = 0, [root]
+    while stack:
+        p = stack.pop()
+        total += rss.get(p, 0)
+        stack.extend(children.get(p, []))
+    return total * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+class PeakMemory:
+    """Samples the process tree's RSS and the load average in a background thread."""
+
+    def __init__(self, period: float = 0.5) -> None:
+        self.period, self.peak, self.loads = period, 0.0, []
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        k = 0
+        while not self._stop.is_set():
+            self.peak = max(self.peak, _tree_rss_mb(os.getpid()))
+            if k % 20 == 0:
+                self.loads.append(os.getloadavg()[0])
+            k += 1
+            self._stop.wait(self.period)
+
+    def __enter__(self) -> PeakMemory:
+        self._t.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._t.join()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=Path("/tmp/loops_scale/data"))
+    ap.add_argument("--out", type=Path, default=Path("/tmp/loops_scale/out"))
+    ap.add_argument("--scans", type=int, default=5000)
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--executor", default="local")
+    ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+
+    import numpy as np
+
+    from graffmatch.datasets.registry import open_dataset
+    from graffmatch.datasets.simulator import SUITES, simulate_dataset
+    from graffmatch.loops.detector import LoopDetectorConfig
+    from graffmatch.loops.sequence import run_loops
+
+    s = SUITES["sim-suburban"]
+    t0 = time.perf_counter()
+    last = [0.0]
+
+    def sim_progress(i: int, n: int) -> None:
+        if time.perf_counter() - last[0] > 60:
+            last[0] = time.perf_counter()
+            print(f"simulate {i}/{n}", flush=True)
+
+    drive = simulate_dataset(args.data / f"suburban-s{args.seed}-{args.scans}", style=s.style, seed=args.seed,
+                             n_scans=args.scans, sensor=s.sensor, world_config=s.world_config(), reuse=True,
+                             progress=sim_progress)
+    sim_s = time.perf_counter() - t0
+    ds = open_dataset("folder", drive)
+    phases: dict[str, float] = {}
+
+    def progress(stage: str, done: int, total: int) -> None:
+        phases[stage] = time.perf_counter()
+        if done % 250 == 0 or done == total:
+            print(f"{stage} {done}/{total} load {os.getloadavg()[0]:.1f}", flush=True)
+
+    with PeakMemory() as mem:
+        t1 = time.perf_counter()
+        summary = run_loops(ds, args.out, LoopDetectorConfig(), executor=args.executor, workers=args.workers,
+                            progress=progress)
+        wall = time.perf_counter() - t1
+    payload = {
+        "machine": machine(),
+        "command": " ".join(sys.argv),
+        "niced": os.nice(0),
+        "drive": str(drive),
+        "n_scans": len(ds),
+        "simulate_s": sim_s,
+        "loops_wall_s": wall,
+        "extract_wall_s": phases["landmarks"] - t1 if "landmarks" in phases else 0.0,
+        "peak_rss_tree_mb": mem.peak,
+        "load_avg_samples": {"min": float(np.min(mem.loads)), "mean": float(np.mean(mem.loads)),
+                             "max": float(np.max(mem.loads))},
+        "database_bytes_per_scan": summary["database_bytes_per_scan"],
+        "summary": summary,
+    }
+    print({k: v for k, v in payload.items() if k != "summary"})
+    write_json(str(args.json) if args.json else None, payload)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,111 @@
+"""Per-query time of `graffmatch loops` (issue 15): retrieval + pre-screen + verification,
+extraction and per-scan precomputation excluded, on the benchmark drives' cached landmarks.
+
+    PYTHONPATH=$PWD nice -n 19 python bench/bench_loops_speed.py --prepare   # check inputs (untimed)
+    flock /tmp/bench.lock env PYTHONPATH=$PWD python bench/bench_loops_speed.py \\
+        --json bench/results/loops_speed.json
+
+Needs the landmark tables of ``bench/bench_loops.py --prepare`` (``--runs``). For each drive the
+database (landmark maps, descriptors, quick-check indices) is built once, untimed, like
+extraction; then every ``--stride``-th query is timed serially, one process, in each mode:
+
+* ``verify-all-5``: top-5 descriptor candidates, every one verified (the previous pipeline);
+* ``quick-5``: top-5 candidates, the BEV quick check, passing ones verified best first, stop at
+  the first accepted one;
+* ``quick-10`` / ``quick-20``: top-10 / top-20 candidates through the quick check, at most 5
+  verified, early stop (``quick-20`` is the default since it lifts retrieval recall).
+
+Also reported per mode: candidates verified per query and the queries with an accepted loop.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine, write_json
+
+COURTYARD = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "balm_courtyard"
+DRIVES = ["sim-downtown-s1", "sim-suburban-s4", "sim-openroad-s3", "balm_courtyard"]
+MODES = {
+    "verify-all-5": dict(top_k=5, quick_check=False, stop_when_accepted=False),
+    "quick-5": dict(top_k=5, quick_check=True, stop_when_accepted=True),
+    "quick-10": dict(top_k=10, quick_check=True, stop_when_accepted=True),
+    "quick-20": dict(top_k=20, quick_check=True, stop_when_accepted=True),
+}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", type=Path, default=Path("/tmp/loops_bench/out"))
+    ap.add_argument("--data", type=Path, default=Path("/tmp/loops_bench/data"))
+    ap.add_argument("--drives", nargs="+", default=DRIVES)
+    ap.add_argument("--modes", nargs="+", default=list(MODES))
+    ap.add_argument("--stride", type=int, default=4)
+    ap.add_argument("--prepare", action="store_true")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+
+    import numpy as np
+
+    from graffmatch.datasets.registry import open_dataset
+    from graffmatch.evaluation.sequence_benchmark import benchmark_config
+    from graffmatch.loops.database import LandmarkDatabase, load_landmarks
+    from graffmatch.loops.descriptor import landmark_descriptor
+    from graffmatch.loops.detector import LoopDetector
+    from graffmatch.loops.quickcheck import quick_index
+    from graffmatch.loops.retrieval import eligible_count
+
+    rows = []
+    load0 = os.getloadavg()[0]
+    for drive in args.drives:
+        lm_dir = args.runs / drive / "ours" / "landmarks"
+        files = sorted(lm_dir.glob("[0-9]" * 6 + ".npz"))
+        if not files:
+            raise SystemExit(f"{lm_dir}: no landmark tables (run bench/bench_loops.py --prepare)")
+        if args.prepare:
+            print(drive, len(files), "scans")
+            continue
+        base = benchmark_config()
+        db = LandmarkDatabase()
+        src = COURTYARD if drive == "balm_courtyard" else args.data / drive
+        stamps = np.asarray(open_dataset("folder", src).timestamps, float)
+        for i, f in enumerate(files):
+            ls = load_landmarks(f)
+            db.add(ls, landmark_descriptor(ls, base.descriptor), float(stamps[i]))
+        db.extra["quick"] = [quick_index(ls, base.quick) for ls in db.landmarks]
+        for mode in args.modes:
+            cfg = base.model_copy(deep=True)
+            opts = MODES[mode]
+            cfg.retrieval.top_k = opts["top_k"]
+            cfg.verification.quick_check = opts["quick_check"]
+            cfg.verification.stop_when_accepted = opts["stop_when_accepted"]
+            det = LoopDetector(cfg)
+            det.db = db
+            # warm-up (numba compilation, caches) outside the clock
+            for q in range(len(db) - 1, len(db) - 4, -1):
+                det.detect(q)
+            qs = [q for q in range(0, len(db), args.stride) if eligible_count(db.timestamps, q, cfg.retrieval) > 0]
+            per, nver, nloop = [], [], 0
+            for q in qs:
+                t0 = time.perf_counter()
+                loops = det.detect(q)
+                per.append(time.perf_counter() - t0)
+                nver.append(sum(r["verified"] for r in det.last_records))
+                nloop += bool(loops)
+            row = {"drive": drive, "mode": mode, "queries": len(qs), "ms_per_query_mean": 1e3 * float(np.mean(per)),
+                   "ms_per_query_median": 1e3 * float(np.median(per)), "ms_per_query_p90": 1e3 * float(np.percentile(per, 90)),
+                   "verified_per_query": float(np.mean(nver)), "queries_with_loop": nloop}
+            rows.append(row)
+            print(row, flush=True)
+    if not args.prepare:
+        write_json(str(args.json) if args.json else None,
+                   {"machine": machine(), "load_at_start": load0, "load_at_end": os.getloadavg()[0], "rows": rows})
+
+
+if __name__ == "__main__":
+    main()
