@@ -16,6 +16,7 @@ import time
 import warnings
 from typing import Literal
 
+import numba as nb
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
@@ -25,8 +26,14 @@ from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.lidar._stats import subsample_groups
 from graffmatch.lidar.ground import GroundConfig, segment_ground
 from graffmatch.lidar.io import PRECISION_TOLERANCE, semantic_class
-from graffmatch.lidar.planes import PlaneConfig, drop_ground_duplicates, extract_planes
+from graffmatch.lidar.planes import (
+    PlaneConfig,
+    drop_ground_duplicates,
+    extract_planes,
+    voxel_planes,
+)
 from graffmatch.lidar.poles import PoleConfig, PoleResult, poles_geometric, poles_semantic
+from graffmatch.lidar.voxels import VoxelCloud, build_voxel_grid
 
 Array = NDArray[np.float64]
 
@@ -38,6 +45,11 @@ UNITS_EXTENT_LIMIT = 2000.0
 #: warning: no LiDAR map spans 10,000 km, and grid indices of such values overflow int64.
 MAX_COORDINATE = 1e7
 
+#: Version of the extraction code's output; part of :meth:`LandmarkExtractorConfig.config_hash`,
+#: so cached landmark files of an older front end are recomputed. 2: the voxel plane detector
+#: and compiled ground / pole / crop kernels (issue 14).
+EXTRACTION_VERSION = 2
+
 #: Plausible span of one scan in metres, used to say which unit an oversized cloud is in.
 PLAUSIBLE_SPAN = (10.0, 400.0)
 
@@ -45,6 +57,39 @@ PLAUSIBLE_SPAN = (10.0, 400.0)
 #: (collinear) admits no plane, so ground and planar patches are skipped (Open3D's patch
 #: detector and hulls, Qhull inside, are never fed such sets); a plane needs s_1/s_0 above it.
 DEGENERATE_RATIO = 1e-3
+
+
+@nb.njit(cache=True)
+def _finite_absmax(A):
+    """(rows with a NaN/Inf coordinate, largest |coordinate| of the finite rows) in one pass."""
+    bad = 0
+    m = 0.0
+    for i in range(A.shape[0]):
+        x, y, z = A[i, 0], A[i, 1], A[i, 2]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            bad += 1
+            continue
+        m = max(m, abs(x), abs(y), abs(z))
+    return bad, m
+
+
+@nb.njit(cache=True)
+def _crop(A, rmin2, rmax2):
+    """float64 xyz of the rows with rmin2 <= |p|^2 <= rmax2, and their indices."""
+    n = A.shape[0]
+    keep = np.empty(n, np.int64)
+    m = 0
+    for i in range(n):
+        x, y, z = np.float64(A[i, 0]), np.float64(A[i, 1]), np.float64(A[i, 2])
+        r2 = x * x + y * y + z * z
+        if rmin2 <= r2 <= rmax2:
+            keep[m] = i
+            m += 1
+    P = np.empty((m, 3))
+    for k in range(m):
+        i = keep[k]
+        P[k, 0], P[k, 1], P[k, 2] = A[i, 0], A[i, 1], A[i, 2]
+    return P, keep[:m].copy()
 
 
 def units_hint(extent: float) -> str | None:
@@ -138,8 +183,9 @@ class LandmarkExtractorConfig(BaseModel):
         return cls(min_range=1.0, planes=PlaneConfig(voxel_size=0.25, min_area=3.0))
 
     def config_hash(self) -> str:
-        """Stable hash of every field (used as part of the landmark-cache key)."""
-        return hashlib.sha256(self.model_dump_json().encode()).hexdigest()[:16]
+        """Stable hash of every field and of :data:`EXTRACTION_VERSION` (landmark-cache key)."""
+        text = f"v{EXTRACTION_VERSION}|{self.model_dump_json()}"
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 class LandmarkExtractor:
@@ -158,6 +204,9 @@ class LandmarkExtractor:
         self.last_timings: dict[str, float] = {}
         self.last_cpu_timings: dict[str, float] = {}
         self.last_info: dict[str, object] = {}
+        #: The voxelised non-ground points of the last scan (within planes.max_range) with their
+        #: normals, in the scan's frame (voxel plane detector only; else None): ICP reuses it.
+        self.last_cloud: VoxelCloud | None = None
 
     # ------------------------------------------------------------------------------------------
     def _validate(
@@ -171,18 +220,34 @@ class LandmarkExtractor:
             raise InvalidInputError(f"points must have shape (N, 3) or (N, 4+), got {arr.shape}")
         if arr.dtype.kind not in "fiu":
             raise InvalidInputError(f"points must be numeric, got dtype {arr.dtype}")
-        P = arr[:, :3].astype(np.float64)
         lab = None
         if labels is not None:
             try:
                 lab = np.asarray(labels).reshape(-1)
             except (TypeError, ValueError) as exc:
                 raise InvalidInputError(f"labels must be an integer array ({exc})") from exc
-            if lab.shape[0] != P.shape[0]:
-                raise InvalidInputError(f"{lab.shape[0]} labels for {P.shape[0]} points")
+            if lab.shape[0] != arr.shape[0]:
+                raise InvalidInputError(f"{lab.shape[0]} labels for {arr.shape[0]} points")
             if lab.dtype.kind not in "iu":
                 raise InvalidInputError(f"labels must be integers, got dtype {lab.dtype}")
             lab = semantic_class(lab)
+        cfg = self.config
+        self._extent = 0.0
+        if arr.dtype.kind == "f" and arr.shape[0]:
+            # Fast path (finite, near the origin, in metres): one pass to check, one to crop.
+            bad, amax = _finite_absmax(arr)
+            small = min(UNITS_EXTENT_LIMIT, cfg.recenter_distance, MAX_COORDINATE)
+            if bad == 0 and amax <= small:
+                self._n_finite = int(arr.shape[0])
+                rmax = np.inf if cfg.max_range is None else cfg.max_range
+                # The same float64 comparison as the general path below (sqrt then compare).
+                P, keep = _crop(arr, cfg.min_range**2, rmax**2)
+                r = np.sqrt(np.einsum("ij,ij->i", P, P))
+                ok = (r >= cfg.min_range) & (r <= rmax)
+                if not ok.all():
+                    P, keep = P[ok], keep[ok]
+                return P, (None if lab is None else lab[keep]), np.zeros(3)
+        P = arr[:, :3].astype(np.float64)
         # NaN/Inf propagate through the sum; cheaper than a reduce over the length-3 axis.
         finite = np.isfinite(P[:, 0] + P[:, 1] + P[:, 2])
         if not finite.all():
@@ -194,9 +259,7 @@ class LandmarkExtractor:
             P = P[finite]
             lab = None if lab is None else lab[finite]
         offset = np.zeros(3)
-        cfg = self.config
         self._n_finite = int(P.shape[0])
-        self._extent = 0.0
         if P.shape[0] and float(np.abs(P).max()) > UNITS_EXTENT_LIMIT:
             self._extent = robust_extent(P)
         if P.shape[0] and float(np.abs(P).max()) > cfg.recenter_distance:
@@ -247,6 +310,7 @@ class LandmarkExtractor:
         timings["validate"] = time.perf_counter() - t0
         cpu["validate"] = time.process_time() - c0
         self.last_timings = timings
+        self.last_cloud = None
         self.last_cpu_timings = cpu
         self.last_info = {"n_points": int(P.shape[0]), "pole_mode": mode}
         hint = None if np.any(offset) else units_hint(self._extent)
@@ -310,7 +374,12 @@ class LandmarkExtractor:
             keep = ~is_ground
             if cfg.planes.max_range is not None:
                 keep &= P[:, 0] ** 2 + P[:, 1] ** 2 <= cfg.planes.max_range**2
-            planes = extract_planes(P[keep], cfg.planes)
+            if cfg.planes.detector == "voxel":
+                grid = build_voxel_grid(P[keep], cfg.planes.voxel_size)
+                planes, cloud = voxel_planes(grid, cfg.planes)
+                self.last_cloud = cloud.shifted(offset) if np.any(offset) else cloud
+            else:
+                planes = extract_planes(P[keep], cfg.planes)
             if ground is not None and ground.normal is not None and ground.centroid is not None:
                 planes = drop_ground_duplicates(planes, ground.normal, ground.centroid, cfg.planes)
         timings["planes"] = time.perf_counter() - t
@@ -328,7 +397,8 @@ class LandmarkExtractor:
             gpts = P[sup]
             # PCA box of the ground support, in the plane.
             q = gpts - ground.centroid
-            _, _, Vt = np.linalg.svd(q[:: max(1, q.shape[0] // 20000)], full_matrices=False)
+            # The in-plane axes need no more than a few thousand points (an even stride).
+            _, _, Vt = np.linalg.svd(q[:: max(1, q.shape[0] // 4096)], full_matrices=False)
             uv = q @ Vt[:2].T
             box = np.array([np.ptp(uv[:, 0]), np.ptp(uv[:, 1])])
             take = np.linspace(0, sup.size - 1, min(cap, sup.size)).astype(np.int64)

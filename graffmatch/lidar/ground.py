@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
@@ -86,31 +87,103 @@ class GroundResult:
     rms: float
 
 
-def _grid_index(
-    xy: Array, cell: float, max_cells: int
-) -> tuple[NDArray[np.int64], tuple[int, int], Array]:
-    lo = np.array([xy[:, 0].min(), xy[:, 1].min()])
-    i = ((xy[:, 0] - lo[0]) / cell).astype(np.int64)  # non-negative: truncation == floor
-    j = ((xy[:, 1] - lo[1]) / cell).astype(np.int64)
-    ij = np.column_stack([i, j])
-    shape = (int(i.max()) + 1, int(j.max()) + 1)
-    if shape[0] * shape[1] > max_cells:
+@nb.njit(cache=True)
+def _xy_bounds(P):
+    x0 = y0 = np.inf
+    x1 = y1 = -np.inf
+    for i in range(P.shape[0]):
+        x0 = min(x0, P[i, 0])
+        x1 = max(x1, P[i, 0])
+        y0 = min(y0, P[i, 1])
+        y1 = max(y1, P[i, 1])
+    return x0, y0, x1, y1
+
+
+@nb.njit(cache=True)
+def _cell_minima(P, x0, y0, inv, nx, ny):
+    """Flat xy cell of every point and the lowest z of every cell (one pass)."""
+    flat = np.empty(P.shape[0], np.int64)
+    zmin = np.full(nx * ny, np.inf)
+    for i in range(P.shape[0]):
+        f = int((P[i, 0] - x0) * inv) * ny + int((P[i, 1] - y0) * inv)
+        flat[i] = f
+        if P[i, 2] < zmin[f]:
+            zmin[f] = P[i, 2]
+    return flat, zmin
+
+
+@nb.njit(cache=True)
+def _label(P, flat, zfloor, threshold, radius2):
+    """Height above the local ground, ground flag, and the ground points within the radius."""
+    n = P.shape[0]
+    height = np.empty(n)
+    is_ground = np.empty(n, np.bool_)
+    near = np.empty(n, np.int64)
+    m = 0
+    for i in range(n):
+        h = P[i, 2] - zfloor[flat[i]]
+        height[i] = h
+        g = h <= threshold
+        is_ground[i] = g
+        if g and P[i, 0] * P[i, 0] + P[i, 1] * P[i, 1] <= radius2:
+            near[m] = i
+            m += 1
+    return height, is_ground, near[:m].copy()
+
+
+@nb.njit(cache=True)
+def _on_plane(P, idx, c, nrm, threshold):
+    """The entries of ``idx`` whose point lies within ``threshold`` of the plane (c, nrm)."""
+    out = np.empty(idx.shape[0], np.int64)
+    m = 0
+    for k in range(idx.shape[0]):
+        i = idx[k]
+        d = (P[i, 0] - c[0]) * nrm[0] + (P[i, 1] - c[1]) * nrm[1] + (P[i, 2] - c[2]) * nrm[2]
+        if abs(d) <= threshold:
+            out[m] = i
+            m += 1
+    return out[:m].copy()
+
+
+@nb.njit(cache=True)
+def _relabel(P, is_ground, c, nrm, threshold, radius2):
+    """Near the sensor, points within ``threshold`` of the ground plane become ground."""
+    out = is_ground.copy()
+    for i in range(P.shape[0]):
+        if out[i] or P[i, 0] * P[i, 0] + P[i, 1] * P[i, 1] > radius2:
+            continue
+        d = (P[i, 0] - c[0]) * nrm[0] + (P[i, 1] - c[1]) * nrm[1] + (P[i, 2] - c[2]) * nrm[2]
+        if abs(d) <= threshold:
+            out[i] = True
+    return out
+
+
+def _cells(points: Array, config: GroundConfig) -> tuple[NDArray[np.int64], Array, tuple[int, int]]:
+    """Flat cell index per point and the cell minima (grid refused above max_grid_cells)."""
+    cell = config.cell_size
+    inv = 1.0 / cell  # the same product as in _cell_minima, so the last index fits the shape
+    x0, y0, x1, y1 = _xy_bounds(points)
+    shape = (int((x1 - x0) * inv) + 1, int((y1 - y0) * inv) + 1)
+    if shape[0] * shape[1] > config.max_grid_cells:
         raise InvalidInputError(
-            f"cloud spans {shape[0]} x {shape[1]} cells of {cell} m (> {max_cells}); crop it "
-            "(max_range) or increase the cell size"
+            f"cloud spans {shape[0]} x {shape[1]} cells of {cell} m (> {config.max_grid_cells}); "
+            "crop it (max_range) or increase the cell size"
         )
-    return ij, shape, lo
+    flat, zmin = _cell_minima(points, x0, y0, inv, shape[0], shape[1])
+    return flat, zmin, shape
+
+
+def _floor(zmin: Array, shape: tuple[int, int], config: GroundConfig) -> Array:
+    return ndimage.minimum_filter(
+        zmin.reshape(shape), size=config.min_filter_cells, mode="nearest"
+    ).reshape(-1)
 
 
 def local_ground_height(points: Array, config: GroundConfig) -> Array:
     """Height of every point above the local ground (min filter of the cell minima)."""
-    xy = points[:, :2]
-    ij, shape, _ = _grid_index(xy, config.cell_size, config.max_grid_cells)
-    flat = ij[:, 0] * shape[1] + ij[:, 1]
-    zmin = np.full(shape[0] * shape[1], np.inf)
-    np.minimum.at(zmin, flat, points[:, 2])
-    zmin = ndimage.minimum_filter(zmin.reshape(shape), size=config.min_filter_cells, mode="nearest")
-    return points[:, 2] - zmin.reshape(-1)[flat]
+    P = np.ascontiguousarray(points, dtype=np.float64)
+    flat, zmin, shape = _cells(P, config)
+    return P[:, 2] - _floor(zmin, shape, config)[flat]
 
 
 def robust_plane_fit(
@@ -147,32 +220,30 @@ def segment_ground(points: Array, config: GroundConfig) -> GroundResult:
         return GroundResult(
             np.zeros(0, bool), np.zeros(0), np.zeros(0, np.int64), None, None, np.nan
         )
-    height = local_ground_height(points, config)
-    is_ground = height <= config.height_threshold
+    P = np.ascontiguousarray(points, dtype=np.float64)
+    flat, zmin, shape = _cells(P, config)
+    radius2 = config.landmark_radius**2
+    height, is_ground, near = _label(
+        P, flat, _floor(zmin, shape, config), config.height_threshold, radius2
+    )
     if not config.emit_landmark:
         return GroundResult(is_ground, height, np.zeros(0, np.int64), None, None, np.nan)
-    within = points[:, 0] ** 2 + points[:, 1] ** 2 <= config.landmark_radius**2
-    near = np.flatnonzero(is_ground & within)
     if near.size < config.min_support:
         return GroundResult(is_ground, height, np.zeros(0, np.int64), None, None, np.nan)
     stride = max(1, near.size // config.fit_max_points)
-    fit = robust_plane_fit(points[near[::stride]], config.inlier_threshold, config.refit_iterations)
+    fit = robust_plane_fit(P[near[::stride]], config.inlier_threshold, config.refit_iterations)
     if fit is None:
         return GroundResult(is_ground, height, np.zeros(0, np.int64), None, None, np.nan)
     normal, c0, _, _ = fit
-    inl = np.flatnonzero(np.abs((points[near] - c0) @ normal) <= config.inlier_threshold)
+    sup = _on_plane(P, near, c0, normal, config.inlier_threshold)
     tilt = np.degrees(np.arccos(np.clip(normal[2], -1.0, 1.0)))
-    if tilt > config.max_tilt_deg or inl.size < config.min_support:
+    if tilt > config.max_tilt_deg or sup.size < config.min_support:
         return GroundResult(is_ground, height, np.zeros(0, np.int64), None, None, np.nan)
-    sup = near[inl]
-    P = points[sup]
-    c = P.mean(axis=0)
-    rms = float(np.sqrt(np.mean(((P - c) @ normal) ** 2)))
+    S = P[sup]
+    c = S.mean(axis=0)
+    rms = float(np.sqrt(np.mean(((S - c) @ normal) ** 2)))
     if config.relabel_with_plane:
         # Points below the road (multipath) lower a cell's minimum and leave real road points
         # "above ground"; near the sensor, the fitted plane is the better ground model.
-        cand = np.flatnonzero(~is_ground & within)
-        on_plane = np.abs((points[cand] - c) @ normal) <= config.inlier_threshold
-        is_ground = is_ground.copy()
-        is_ground[cand[on_plane]] = True
+        is_ground = _relabel(P, is_ground, c, normal, config.inlier_threshold, radius2)
     return GroundResult(is_ground, height, sup, normal, c, rms)

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+import numba as nb
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
@@ -175,18 +176,18 @@ def poles_geometric(
     ``height`` is the height above the local ground (see :mod:`graffmatch.lidar.ground`).
     """
     n = points.shape[0]
-    band = np.flatnonzero(~is_ground & (height >= cfg.min_height) & (height <= cfg.max_height))
+    P = np.ascontiguousarray(points, dtype=np.float64)
+    band = _band(P, height, is_ground, cfg.min_height, cfg.max_height)
     if band.size < cfg.min_support:
         return _empty(n)
-    xy = points[band, :2]
-    lo = xy.min(axis=0)
-    ij = np.floor((xy - lo) / cfg.cell_size).astype(np.int64)
-    shape = (int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1)
+    x0, y0, x1, y1 = _band_bounds(P, band)
+    inv = 1.0 / cfg.cell_size  # the same product as in _band_cells, so indices fit the shape
+    shape = (int((x1 - x0) * inv) + 1, int((y1 - y0) * inv) + 1)
     if shape[0] * shape[1] > cfg.max_grid_cells:
         raise InvalidInputError(
             f"pole grid of {shape[0]} x {shape[1]} cells is too large; crop the cloud (max_range)"
         )
-    flat = ij[:, 0] * shape[1] + ij[:, 1]
+    flat = _band_cells(P, band, x0, y0, inv, shape[1])
     cnt = np.bincount(flat, minlength=shape[0] * shape[1]).reshape(shape)
     occ = cnt >= cfg.min_cell_points
     comp, k = ndimage.label(occ, structure=np.ones((3, 3), dtype=bool))
@@ -196,17 +197,49 @@ def poles_geometric(
     sizes = np.bincount(comp_flat, minlength=k + 1)
     small = sizes <= cfg.max_footprint_cells
     small[0] = False
-    # Keep only the points of small components; component ids start at 1.
+    # Only the points of small components are fitted; component ids start at 1.
     pid = comp_flat[flat]
-    sel = small[pid]
-    lab = np.full(band.size, -1, dtype=np.int64)
+    sel = np.flatnonzero(small[pid])
     ids = np.flatnonzero(small)
     remap = np.full(k + 1, -1, dtype=np.int64)
     remap[ids] = np.arange(ids.size)
-    lab[sel] = remap[pid[sel]]
-    res = _fit_and_filter(points[band], lab, ids.size, cfg)
+    idx = band[sel]
+    res = _fit_and_filter(P[idx], remap[pid[sel]], ids.size, cfg)
     full = np.full(n, -1, dtype=np.int64)
-    full[band] = res.labels
+    full[idx] = res.labels
     return PoleResult(
         res.anchors, res.directions, res.extent, res.radius, res.support, res.rms, full
     )
+
+
+@nb.njit(cache=True)
+def _band(P, height, is_ground, lo, hi):
+    """Indices of the non-ground points in the height band [lo, hi] above the local ground."""
+    out = np.empty(P.shape[0], np.int64)
+    m = 0
+    for i in range(P.shape[0]):
+        if not is_ground[i] and lo <= height[i] <= hi:
+            out[m] = i
+            m += 1
+    return out[:m].copy()
+
+
+@nb.njit(cache=True)
+def _band_bounds(P, band):
+    x0 = y0 = np.inf
+    x1 = y1 = -np.inf
+    for i in band:
+        x0 = min(x0, P[i, 0])
+        x1 = max(x1, P[i, 0])
+        y0 = min(y0, P[i, 1])
+        y1 = max(y1, P[i, 1])
+    return x0, y0, x1, y1
+
+
+@nb.njit(cache=True)
+def _band_cells(P, band, x0, y0, inv, ny):
+    flat = np.empty(band.shape[0], np.int64)
+    for k in range(band.shape[0]):
+        i = band[k]
+        flat[k] = int((P[i, 0] - x0) * inv) * ny + int((P[i, 1] - y0) * inv)
+    return flat
