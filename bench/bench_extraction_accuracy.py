@@ -1,6 +1,7 @@
 """Front-end accuracy against the simulator's ground-truth landmarks, per built-in suite.
 
     python bench/bench_extraction_accuracy.py [--scans 12] [--root /tmp/gm-sim] [--json out.json]
+        [--detector voxel open3d]
 
 For each simulated suite, a few scans are simulated (or reused from ``--root``), landmarks are
 extracted with the suite's own front-end config (the one its loop-closure build uses; semantic
@@ -53,57 +54,71 @@ def main() -> None:
     ap.add_argument("--min-points", type=int, default=100)
     ap.add_argument("--root", default="/tmp/graffmatch-extraction-accuracy")
     ap.add_argument("--json", default=None)
+    ap.add_argument(
+        "--detector",
+        nargs="+",
+        default=["voxel"],
+        choices=["voxel", "open3d"],
+        help="plane detector(s), each on the same scans (a same-run comparison)",
+    )
     args = ap.parse_args()
     rows = []
     for name, spec in SUITES.items():
-        ex = LandmarkExtractor(suite_config(name).extractor)
-        seq = Path(args.root) / name
-        simulate_dataset(
-            seq,
-            style=spec.style,
-            seed=spec.seed,
-            n_scans=args.scans * 3,
-            sensor=spec.sensor,
-            world_config=spec.world_config(),
-            reuse=True,
-        )
-        ds = open_dataset("folder", seq)
-        n_gt = {1: 0, 2: 0}
-        n_est = {1: 0, 2: 0}
-        angs, offs, anchors, kinds = [], [], [], []
-        for i in range(0, len(ds), 3):
-            scan = ds[i]
-            est = ex.extract(scan.points, scan.labels)
-            gt = scan_ground_truth(seq, i, scan.T_world_lidar, min_points=args.min_points)
-            _, a, o, an, t = evaluate_scan(est, gt)
-            for kind in (1, 2):
-                n_gt[kind] += int(np.sum(gt.types == kind))
-                n_est[kind] += int(np.sum(est.types == kind))
-            angs.append(a)
-            offs.append(o)
-            anchors.append(an)
-            kinds.append(t)
-        a, o, an, t = map(np.concatenate, (angs, offs, anchors, kinds))
-        for label, kind in (("poles", 1), ("planes", 2)):
-            sel = t == kind
-            rows.append(
-                {
-                    "suite": name,
-                    "type": label,
-                    "gt_seen": n_gt[kind],
-                    "extracted": n_est[kind],
-                    "matched": int(sel.sum()),
-                    "recovered_of_gt": round(int(sel.sum()) / max(n_gt[kind], 1), 3),
-                    "precision": round(int(sel.sum()) / max(n_est[kind], 1), 3),
-                    "angle_med_deg": round(float(np.median(a[sel])), 2) if sel.any() else "",
-                    "angle_p90_deg": round(float(np.percentile(a[sel], 90)), 2)
-                    if sel.any()
-                    else "",
-                    "offset_med_m": round(float(np.median(o[sel])), 3) if sel.any() else "",
-                    "offset_p90_m": round(float(np.percentile(o[sel], 90)), 3) if sel.any() else "",
-                    "anchor_med_m": round(float(np.median(an[sel])), 2) if sel.any() else "",
-                }
+        for det in args.detector:
+            base = suite_config(name).extractor
+            ex = LandmarkExtractor(
+                base.model_copy(update={"planes": base.planes.model_copy(update={"detector": det})})
             )
+            seq = Path(args.root) / name
+            simulate_dataset(
+                seq,
+                style=spec.style,
+                seed=spec.seed,
+                n_scans=args.scans * 3,
+                sensor=spec.sensor,
+                world_config=spec.world_config(),
+                reuse=True,
+            )
+            ds = open_dataset("folder", seq)
+            n_gt = {1: 0, 2: 0}
+            n_est = {1: 0, 2: 0}
+            angs, offs, anchors, kinds = [], [], [], []
+            for i in range(0, len(ds), 3):
+                scan = ds[i]
+                est = ex.extract(scan.points, scan.labels)
+                gt = scan_ground_truth(seq, i, scan.T_world_lidar, min_points=args.min_points)
+                _, a, o, an, t = evaluate_scan(est, gt)
+                for kind in (1, 2):
+                    n_gt[kind] += int(np.sum(gt.types == kind))
+                    n_est[kind] += int(np.sum(est.types == kind))
+                angs.append(a)
+                offs.append(o)
+                anchors.append(an)
+                kinds.append(t)
+            a, o, an, t = map(np.concatenate, (angs, offs, anchors, kinds))
+            for label, kind in (("poles", 1), ("planes", 2)):
+                sel = t == kind
+                rows.append(
+                    {
+                        "suite": name,
+                        "detector": det,
+                        "type": label,
+                        "gt_seen": n_gt[kind],
+                        "extracted": n_est[kind],
+                        "matched": int(sel.sum()),
+                        "recovered_of_gt": round(int(sel.sum()) / max(n_gt[kind], 1), 3),
+                        "precision": round(int(sel.sum()) / max(n_est[kind], 1), 3),
+                        "angle_med_deg": round(float(np.median(a[sel])), 2) if sel.any() else "",
+                        "angle_p90_deg": round(float(np.percentile(a[sel], 90)), 2)
+                        if sel.any()
+                        else "",
+                        "offset_med_m": round(float(np.median(o[sel])), 3) if sel.any() else "",
+                        "offset_p90_m": round(float(np.percentile(o[sel], 90)), 3)
+                        if sel.any()
+                        else "",
+                        "anchor_med_m": round(float(np.median(an[sel])), 2) if sel.any() else "",
+                    }
+                )
         print(f"{name}: done", flush=True)
     print_table(rows, list(rows[0]))
     write_json(

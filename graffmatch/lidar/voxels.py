@@ -11,9 +11,12 @@ over the voxels (~2-4 ms). ``bench/bench_extraction.py --compare-detectors`` mea
 detectors (time and repeatability on real scans) side by side.
 
 Region growing: seeds are planar voxels in order of increasing surface variation; a neighbour
-joins a region when it is planar, its normal is within ``grow_angle_deg`` of the region's and
-its centroid within ``max_residual`` of the region's plane, which is refitted from the summed
-moments as the region grows (so a curved surface cannot creep away from the plane).
+(up to two voxels away, so that growth crosses the gaps between far scan lines) joins a region
+when it is planar, its normal is within ``grow_angle_deg`` of the region's and its centroid
+within ``max_residual`` of the region's plane, which is refitted from the summed moments as the
+region grows (so a curved surface cannot creep away from the plane). A voxel whose 3x3x3
+neighbourhood is no plane is tested again on its 5x5x5 one: beyond ~50 m (HDL-64E) or on sparse
+hand-held scans, one 3x3x3 block holds a single scan line.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ MAX_COLUMNS = 64_000_000
 
 @dataclass(frozen=True)
 class VoxelGrid:
-    """Occupied voxels of a cloud: centroids, raw moments and the 26-neighbour table.
+    """Occupied voxels of a cloud: centroids, raw moments and the neighbour table (5x5x5).
 
     Moments are about ``origin`` (the grid's corner) so that far clouds keep their precision.
     """
@@ -45,7 +48,7 @@ class VoxelGrid:
     counts: NDArray[np.int64]  # (V,)
     sums: Array  # (V, 3) sum of (p - origin)
     outer: Array  # (V, 6) sums of xx, xy, xz, yy, yz, zz of (p - origin)
-    neighbours: NDArray[np.int32]  # (V, 26) index of each occupied neighbour, -1 none
+    neighbours: NDArray[np.int32]  # (V, 124) occupied neighbours (-1 none): 26 at distance 1, then 98 at 2
     point_voxel: NDArray[np.int64]  # (N,) voxel of each input point
 
     def __len__(self) -> int:
@@ -139,22 +142,31 @@ def _index(P, origin, ix, iy, iz, nx, ny):
         s2[v, 3] += y * y
         s2[v, 4] += y * z
         s2[v, 5] += z * z
-    nbr = np.full((V, 26), -1, np.int32)
+    # Columns 0-25: the 26 neighbours at Chebyshev distance 1; 26-123: the 98 at distance 2.
+    nbr = np.full((V, 124), -1, np.int32)
     for v in range(V):
-        j = 0
-        for dx in range(-1, 2):
+        j1 = 0
+        j2 = 26
+        for dx in range(-2, 3):
             x = vx[v] + dx
-            for dy in range(-1, 2):
+            for dy in range(-2, 3):
                 y = vy[v] + dy
                 ok = 0 <= x < nx and 0 <= y < ny
                 c = x * ny + y if ok else 0
-                for dz in range(-1, 2):
-                    if dx == 0 and dy == 0 and dz == 0:
+                for dz in range(-2, 3):
+                    ring = max(abs(dx), abs(dy), abs(dz))
+                    if ring == 0:
                         continue
                     z = vz[v] + dz
+                    u = -1
                     if ok and zlo[c] <= z <= zhi[c]:
-                        nbr[v, j] = slot[first[c] + z - zlo[c]]
-                    j += 1
+                        u = slot[first[c] + z - zlo[c]]
+                    if ring == 1:
+                        nbr[v, j1] = u
+                        j1 += 1
+                    else:
+                        nbr[v, j2] = u
+                        j2 += 1
     return cnt, s1, s2, nbr, pv
 
 
@@ -164,7 +176,7 @@ def build_voxel_grid(points: Array, size: float) -> VoxelGrid:
     if P.shape[0] == 0:
         z = np.zeros((0, 3))
         return VoxelGrid(np.zeros(3), size, z, np.zeros(0, np.int64), z, np.zeros((0, 6)),
-                         np.zeros((0, 26), np.int32), np.zeros(0, np.int64))  # fmt: skip
+                         np.zeros((0, 124), np.int32), np.zeros(0, np.int64))  # fmt: skip
     origin = P.min(axis=0)
     ix, iy, iz, nx, ny = _voxelise(P, origin, 1.0 / size)
     if nx * ny > MAX_COLUMNS:
@@ -224,36 +236,44 @@ def _plane_of(n, s0, s1, s2, o0, o1, o2, o3, o4, o5):
 
 
 @nb.njit(cache=True)
-def _local_planes(cnt, s1, s2, nbr):
-    """Per voxel: the plane of its 3x3x3 neighbourhood (normal, surface variation, points)."""
+def _local_planes(cnt, s1, s2, nbr, max_variation, min_flatness, min_points):
+    """Per voxel: the plane of its 3x3x3 neighbourhood (normal, surface variation, points), or
+    of its 5x5x5 one when the smaller is no plane (far surfaces: scan lines more than a voxel
+    apart leave one line per 3x3x3 block)."""
     V = cnt.shape[0]
     normals = np.zeros((V, 3))
     variation = np.full(V, np.inf)
-    flatness = np.zeros(V)
-    npts = np.zeros(V, np.int64)
+    planar = np.zeros(V, np.bool_)
+    o = np.zeros(6)
     for v in range(V):
         n = cnt[v]
         t0, t1, t2 = s1[v, 0], s1[v, 1], s1[v, 2]
-        o = s2[v].copy()
-        for j in range(26):
-            u = nbr[v, j]
-            if u >= 0:
-                n += cnt[u]
-                t0 += s1[u, 0]
-                t1 += s1[u, 1]
-                t2 += s1[u, 2]
-                for k in range(6):
-                    o[k] += s2[u, k]
-        npts[v] = n
-        if n < 3:
-            continue
-        e0, e1, e2, a, b, c, _, _, _ = _plane_of(n, t0, t1, t2, o[0], o[1], o[2], o[3], o[4], o[5])
-        tot = e0 + e1 + e2
-        if tot > 0:
-            variation[v] = e0 / tot
-            flatness[v] = e1 / e2 if e2 > 0 else 0.0
-        normals[v, 0], normals[v, 1], normals[v, 2] = a, b, c
-    return normals, variation, flatness, npts
+        for k in range(6):
+            o[k] = s2[v, k]
+        for width in (26, 124):
+            start = 0 if width == 26 else 26
+            for j in range(start, width):
+                u = nbr[v, j]
+                if u >= 0:
+                    n += cnt[u]
+                    t0 += s1[u, 0]
+                    t1 += s1[u, 1]
+                    t2 += s1[u, 2]
+                    for k in range(6):
+                        o[k] += s2[u, k]
+            if n < 3:
+                continue
+            e0, e1, e2, a, b, c, _, _, _ = _plane_of(n, t0, t1, t2, o[0], o[1], o[2], o[3], o[4], o[5])
+            tot = e0 + e1 + e2
+            var = e0 / tot if tot > 0 else np.inf
+            flat = e1 / e2 if e2 > 0 else 0.0
+            if width == 26 or var <= max_variation:
+                normals[v, 0], normals[v, 1], normals[v, 2] = a, b, c
+                variation[v] = var
+            if var <= max_variation and flat >= min_flatness and n >= min_points:
+                planar[v] = True
+                break
+    return normals, variation, planar
 
 
 @nb.njit(cache=True)
@@ -278,7 +298,7 @@ def _grow(cnt, s1, s2, cen, nbr, normals, planar, order, cos_max, max_offset, mi
         while head < tail:
             v = queue[head]
             head += 1
-            for j in range(26):
+            for j in range(nbr.shape[1]):  # across gaps of one voxel too (far scan lines)
                 u = nbr[v, j]
                 if u < 0 or label[u] >= 0 or not planar[u]:
                     continue
@@ -331,10 +351,9 @@ def grow_planes(
     """
     if len(grid) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
-    normals, variation, flatness, npts = _local_planes(
-        grid.counts, grid.sums, grid.outer, grid.neighbours
+    normals, variation, planar = _local_planes(
+        grid.counts, grid.sums, grid.outer, grid.neighbours, max_variation, min_flatness, min_points
     )
-    planar = (variation <= max_variation) & (flatness >= min_flatness) & (npts >= min_points)
     order = np.argsort(variation, kind="stable")
     labels, _ = _grow(
         grid.counts, grid.sums, grid.outer, grid.centroids - grid.origin, grid.neighbours,
