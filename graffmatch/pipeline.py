@@ -25,6 +25,7 @@ from graffmatch.errors import InvalidInputError
 from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.geometry.transforms import rotation_error_deg
 from graffmatch.lidar.extractor import LandmarkExtractor, LandmarkExtractorConfig
+from graffmatch.lidar.voxels import VoxelCloud
 from graffmatch.matcher import GraffMatchConfig, GraffMatcher, MatchResult
 from graffmatch.verification.evidence import voxel_downsample
 
@@ -40,11 +41,22 @@ class RefinementConfig(BaseModel):
         description="scans: the raw scans without their ground (when given); landmarks: the matched "
         "landmarks' support points only",
     )
-    voxel: float = Field(0.4, gt=0, description="voxel size of the scans used by ICP [m]")
+    reuse_extractor_cloud: bool = Field(
+        True,
+        description="scans: run ICP on the extractor's voxelised non-ground cloud and its normals "
+        "(computed once during extraction) instead of re-voxelising the raw scans",
+    )
+    voxel: float = Field(0.4, gt=0, description="voxel size of the scans used by ICP when they are re-voxelised [m]")
     max_points: int = Field(8000, ge=10, description="most points per scan used by ICP")
+    max_source_points: int = Field(
+        3000, ge=10, description="most source points used with the extractor's cloud (even stride)"
+    )
     ground_clearance: float = Field(0.3, ge=0, description="points this close above the ground plane are ground [m]")
     max_correspondence_distance: float = Field(0.5, gt=0, description="ICP correspondence distance [m]")
-    max_iterations: int = Field(30, ge=1, description="ICP iterations")
+    max_iterations: int = Field(15, ge=1, description="ICP iterations")
+    relative_change: float = Field(
+        1e-4, gt=0, description="stop when fitness and inlier RMSE change by less than this (relative)"
+    )
     point_to_plane: bool = Field(True, description="point-to-plane (else point-to-point)")
     normal_radius: float = Field(1.0, gt=0, description="radius of the target normals [m]")
 
@@ -130,16 +142,30 @@ class ScanMatcher:
     def refine(
         self, result: MatchResult, source: LandmarkSet, target: LandmarkSet,
         source_points: ArrayLike | None = None, target_points: ArrayLike | None = None,
+        source_cloud: VoxelCloud | None = None, target_cloud: VoxelCloud | None = None,
     ) -> MatchResult:
         """ICP from the verified transform (in place); invalid when ICP moves it by more than a
-        distinct rival would differ. Needs a transform; a no-op for method 'none'."""
+        distinct rival would differ. Needs a transform; a no-op for method 'none'.
+
+        ``source_cloud`` / ``target_cloud`` are the extractor's voxel clouds of the scans
+        (:attr:`LandmarkExtractor.last_cloud`); with ``reuse_extractor_cloud`` they replace the
+        raw scans, so nothing is voxelised or normal-estimated twice."""
         rc = self.config.refinement
         if rc.method == "none" or result.T_target_source is None:
             return result
         from graffmatch.registration.icp import matched_support_points, refine_icp
 
         t0 = time.perf_counter()
-        if rc.points == "scans" and source_points is not None and target_points is not None:
+        normals = None
+        clouds = source_cloud is not None and target_cloud is not None and rc.reuse_extractor_cloud
+        if rc.points == "scans" and clouds:
+            assert source_cloud is not None and target_cloud is not None
+            ps = source_cloud.points
+            if len(ps) > rc.max_source_points:
+                ps = ps[np.linspace(0, len(ps) - 1, rc.max_source_points).astype(np.int64)]
+            pt, normals = target_cloud.points, target_cloud.normals
+            used = "scans"  # their voxelised non-ground points, from the extractor
+        elif rc.points == "scans" and source_points is not None and target_points is not None:
             ps = voxel_downsample(non_ground_points(source_points, source, rc.ground_clearance), rc.voxel, rc.max_points)
             pt = voxel_downsample(non_ground_points(target_points, target, rc.ground_clearance), rc.voxel, rc.max_points)
             used = "scans"
@@ -156,7 +182,8 @@ class ScanMatcher:
             raise InvalidInputError(f"ICP refinement: too few points ({len(ps)} source, {len(pt)} target)")
         T0 = result.T_target_source
         T, fitness, rmse = refine_icp(ps, pt, T0, rc.max_correspondence_distance, rc.max_iterations,
-                                      rc.point_to_plane, rc.normal_radius)
+                                      rc.point_to_plane, rc.normal_radius, normals,
+                                      rc.relative_change, rc.relative_change)
         rot = rotation_error_deg(T[:3, :3], T0[:3, :3])
         tr = float(np.linalg.norm(T[:3, 3] - T0[:3, 3]))
         result.info.update(icp_fitness=fitness, icp_rmse=rmse, icp_points=used,
@@ -181,7 +208,9 @@ class ScanMatcher:
         points into the target frame."""
         t0 = time.perf_counter()
         src = self.extract(source_points, source_labels)
+        src_cloud = self.extractor.last_cloud
         tgt = self.extract(target_points, target_labels)
+        tgt_cloud = self.extractor.last_cloud
         t_extract = time.perf_counter() - t0
         for name, ls in (("source", src), ("target", tgt)):
             if len(ls) < 2:
@@ -190,7 +219,7 @@ class ScanMatcher:
                 )
         result = self.match(src, tgt)
         result.timings = {"extraction": t_extract, **result.timings}
-        self.refine(result, src, tgt, source_points, target_points)
+        self.refine(result, src, tgt, source_points, target_points, src_cloud, tgt_cloud)
         result.timings["total"] = sum(v for k, v in result.timings.items() if k != "total")
         return ScanRegistration(result, src, tgt)
 
