@@ -116,3 +116,24 @@ def test_both_detectors_recover_the_scene(detector: str) -> None:
     for n, _ in scene.walls:
         cos = np.max(np.abs(planes.directions @ n))
         assert cos > np.cos(np.radians(1.0))
+
+
+def test_extractor_keeps_the_voxel_cloud_with_normals() -> None:
+    scene = make_scene(seed=1)
+    ex = LandmarkExtractor()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ls = ex.extract(scene.points)
+    cloud = ex.last_cloud
+    assert cloud is not None and len(cloud) > 100 and cloud.voxel_size == ex.config.planes.voxel_size
+    # voxels of each wall carry that wall's normal
+    for n, d in scene.walls:
+        on = np.abs(cloud.points @ n - d) < 0.05
+        assert on.sum() > 20
+        assert np.median(np.abs(cloud.normals[on] @ n)) > np.cos(np.radians(3.0))
+    # the Open3D detector keeps no cloud (ICP then voxelises the raw scans itself)
+    ex2 = LandmarkExtractor(LandmarkExtractorConfig(planes=PlaneConfig(detector="open3d")))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ex2.extract(scene.points)
+    assert ex2.last_cloud is None and len(ls) > 0
