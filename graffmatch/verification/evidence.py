@@ -469,20 +469,34 @@ def align_on_evidence(
     Landmark registration is only as good as the landmarks' fits; aligning the evidence points
     turns near misses (rotation right, translation off by a metre) into accurate transforms
     before they are scored. Nearest neighbours from the target's cell hashes (the KD-tree's
-    answer); deterministic (no threads)."""
+    answer); deterministic (no threads).
+
+    The arithmetic is that of the plain numpy fit (mean, ``(a - ca).T @ (b - cb)``, LAPACK SVD,
+    ``V diag(1, 1, s) U^T``) with its overheads removed: ``sum / n`` is what ``mean`` computes,
+    scaling V's last column by s = +-1 is what the product with the diagonal computes, and the
+    sign of the determinant of the orthogonal ``V U^T`` (+-1) is read off the 3 x 3 formula."""
     T = np.array(T_target_source, dtype=np.float64)
     P = source.points
+    add = np.add.reduce
     for d_max in distances:
         q = P @ T[:3, :3].T + T[:3, 3]
         idx = target.neighbours(q, d_max)
         m = idx >= 0
-        if m.sum() < 10:
+        n = int(np.count_nonzero(m))
+        if n < 10:
             break
         a, b = P[m], target.points[idx[m]]
-        ca, cb = a.mean(0), b.mean(0)
+        ca, cb = add(a, axis=0) / n, add(b, axis=0) / n
         U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
-        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
-        R = Vt.T @ D @ U.T
+        V = np.ascontiguousarray(Vt.T)  # the layout of the product V @ diag(...) had
+        M = V @ U.T
+        det = (M[0, 0] * (M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]) - M[0, 1] * (M[1, 0] * M[2, 2] - M[1, 2] * M[2, 0])
+               + M[0, 2] * (M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]))
+        if det < 0:
+            V = V * np.array([1.0, 1.0, -1.0])
+            R = V @ U.T
+        else:
+            R = M
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, cb - R @ ca
     return T
