@@ -165,3 +165,21 @@ def test_dense_table_and_hash_give_the_same_neighbours(monkeypatch):
     ref = _kd_idx(P, Q, 0.3)
     np.testing.assert_array_equal(dense.query(Q), ref)
     np.testing.assert_array_equal(hashed.query(Q), ref)
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), n_poles=st.integers(0, 10), n_planes=st.integers(1, 20),
+       H=st.integers(1, 8), noise=st.sampled_from([0.0, 0.05, 1.0]))
+def test_landmark_overlap_equals_the_numpy_reference(seed, n_poles, n_planes, H, noise):
+    sc = make_scene_pair(n_poles, n_planes, seed=seed % 1000)
+    rng = np.random.default_rng(seed)
+    Ts = np.stack([sc.T_target_source] + [random_transform(rng, 2.0) for _ in range(H - 1)])
+    Ts[0, :3, 3] += rng.normal(scale=noise, size=3)
+    c_new: list = []
+    c_ref: list = []
+    new = E.landmark_overlap(sc.source, sc.target, Ts, counts=c_new)
+    ref = E._landmark_overlap_reference(sc.source, sc.target, Ts, counts=c_ref)
+    np.testing.assert_allclose(new, ref, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(c_new[0], c_ref[0])
+    one = E.landmark_overlap(sc.source, sc.target, Ts[0])
+    assert one.shape == (2,) and np.allclose(one, ref[0], rtol=0, atol=1e-12)
