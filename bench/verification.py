@@ -5,10 +5,11 @@ Data (all from one command, cached under --out):
 * ``balm_courtyard`` (real): pairs 3-16 m apart. Calibration split: both scans in the first
   half of the walk; test split: both in the second half.
 * ``kitti00_first6`` (real): every pair of the six scans (test only).
-* simulated drives (downtown, suburban): pairs 3-16 m apart (positives) and > 60 m apart
-  (negatives), split by the first / second half of each drive.
-* cross-dataset negatives: courtyard x KITTI, simulated x real, simulated style x style,
-  split by pair parity.
+* simulated drives (downtown, suburban): pairs 3-16 m apart (positives), split by the first /
+  second half of each drive.
+* negatives, split by pair parity: places > 60 m apart on one recording (the suburban drive
+  has some), and cross-dataset pairs: courtyard x KITTI, simulated x real, simulated style x
+  style (``--cross-per`` of each, half of them test).
 
 Each pair is matched once with a permissive decision (every threshold open) and the raw
 evidence is recorded (best score, rival ratio, structural problems, the transform); any
@@ -86,8 +87,10 @@ def load_sources(out: Path, sim_scans: int) -> dict[str, dict]:
     return src
 
 
-def make_pairs(src: dict[str, dict], max_per: int, seed: int = 0) -> list[dict]:
-    """Positive and negative pairs with their split ('cal' or 'test')."""
+def make_pairs(src: dict[str, dict], max_per: int, cross_per: int = 180, seed: int = 0) -> list[dict]:
+    """Positive and negative pairs with their split ('cal' or 'test'): up to ``max_per``
+    positives per dataset and split, ``cross_per`` negatives per pair of datasets and per
+    dataset (places > 60 m apart), alternately calibration and test."""
     rng = np.random.default_rng(seed)
     pairs: list[dict] = []
 
@@ -111,15 +114,18 @@ def make_pairs(src: dict[str, dict], max_per: int, seed: int = 0) -> list[dict]:
             cand = [(i, j) for i in range(lo, hi) for j in range(i + 1, hi) if 3.0 <= D[i, j] <= 16.0]
             for i, j in take(cand, max_per):
                 pairs.append(dict(ds=name, i=i, j=j, ds2=name, split=split, positive=True))
-            far = [(i, j) for i in range(lo, hi) for j in range(i + 1, hi) if D[i, j] > 60.0]
-            for i, j in take(far, max_per // 2):
-                pairs.append(dict(ds=name, i=i, j=j, ds2=name, split=split, positive=False))
+    for name, s in src.items():  # places > 60 m apart anywhere on the recording, split by parity
+        pos = s["poses"][:, :3, 3]
+        D = np.linalg.norm(pos[:, None] - pos[None], axis=2)
+        far = [(i, j) for i in range(len(pos)) for j in range(i + 1, len(pos)) if D[i, j] > 60.0]
+        for k, (i, j) in enumerate(take(far, cross_per)):
+            pairs.append(dict(ds=name, i=i, j=j, ds2=name, split="cal" if k % 2 == 0 else "test", positive=False))
     names = list(src)
     for a in range(len(names)):
         for b in range(a + 1, len(names)):
             na, nb_ = names[a], names[b]
             cross = [(i, j) for i in range(len(src[na]["lms"])) for j in range(len(src[nb_]["lms"]))]
-            for k, (i, j) in enumerate(take(cross, max_per // 2)):
+            for k, (i, j) in enumerate(take(cross, cross_per)):
                 pairs.append(dict(ds=na, i=i, j=j, ds2=nb_, split="cal" if k % 2 == 0 else "test",
                                   positive=False))
     return pairs
@@ -241,11 +247,33 @@ def reliability(rows: list[dict], coef, valid: np.ndarray, bins: int = 5) -> lis
     return out
 
 
+def lines_only(src: dict, pairs: list[dict], mo: float, mr: float) -> dict:
+    """GraffMatch-lines (poles only) with the verified matcher and the chosen thresholds, on the
+    simulated suites' test pairs (positives and the simulated negatives)."""
+    sel = [p for p in pairs if p["split"] == "test" and p["ds"].startswith("sim") and p["ds2"].startswith("sim")]
+    cfg = GraffMatchConfig(landmark_types=["line"], verification=VerificationConfig(
+        min_overlap=0.0, max_rival_ratio=1.0, min_landmark_overlap=0.0))
+    rows = run_pairs(src, sel, cfg)
+    v = decide(rows, mo, mr)
+    out = {}
+    print(f"\n{'lines only (test split)':<30}{'pairs':>6}{'pos':>5}{'neg':>5}{'valid':>6}{'prec':>7}{'recall':>7}"
+          f"{'oracle':>7}{'FP neg':>8}")
+    for name in sorted({r["ds"] if r["ds"] == r["ds2"] else f"{r['ds']} x {r['ds2']}" for r in rows}):
+        idx = [k for k, r in enumerate(rows) if (r["ds"] if r["ds"] == r["ds2"] else f"{r['ds']} x {r['ds2']}") == name]
+        m = metrics([rows[k] for k in idx], v[idx])
+        out[name] = m
+        print(f"{name + ' lines':<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
+              f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="/tmp/gm-verify")
     ap.add_argument("--sim-scans", type=int, default=120)
-    ap.add_argument("--max-per", type=int, default=150, help="pairs per dataset and split")
+    ap.add_argument("--max-per", type=int, default=120, help="positives per dataset and split")
+    ap.add_argument("--cross-per", type=int, default=180,
+                    help="negatives per pair of datasets (and per dataset, > 60 m apart), half of them test")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     out = Path(a.out)
@@ -253,7 +281,7 @@ def main() -> None:
     src = load_sources(out, a.sim_scans)
     print(f"landmarks ready in {time.perf_counter() - t0:.0f} s: "
           + ", ".join(f"{k} {len(v['lms'])}" for k, v in src.items()), flush=True)
-    pairs = make_pairs(src, a.max_per)
+    pairs = make_pairs(src, a.max_per, a.cross_per)
     open_cfg = GraffMatchConfig(verification=VerificationConfig(min_overlap=0.0, max_rival_ratio=1.0,
                                                                 min_landmark_overlap=0.0))
     rows = run_pairs(src, pairs, open_cfg)
@@ -284,6 +312,7 @@ def main() -> None:
     m = report["test"]["chosen"]
     print(f"{'ALL (test)':<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
           f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
+    report["lines_only_test"] = lines_only(src, pairs, mo, mr)
     st = np.array([r["structural"] for r in test])
     lab = np.array([r["correct"] for r in test])
     sc = np.array([r["score"] for r in test])

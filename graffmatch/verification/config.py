@@ -43,16 +43,29 @@ class VerificationConfig(BaseModel):
     refine_tolerance: float = Field(
         0.02, ge=0, description="keep the landmark re-registration unless it explains this much less evidence"
     )
+    local_search_m: float = Field(
+        2.0, ge=0, description="the leader is re-aligned from starts up to this far around it (0: off) [m]"
+    )
+    local_search_step_m: float = Field(1.0, gt=0, description="... on a grid with this step [m]")
+    local_search_deg: float = Field(3.0, ge=0, description="... and yawed by +-this [deg]")
+    local_search_top: int = Field(2, ge=1, description="... the best starts by occupancy are aligned and scored")
+    local_search_distances: tuple[float, ...] = Field(
+        (2.0, 1.5, 1.0, 0.8, 0.6, 0.5, 0.4, 0.3, 0.3, 0.3),
+        description="correspondence distances of the leader's longer re-alignment (one step each) [m]",
+    )
+    local_search_gain: float = Field(
+        0.01, ge=0, description="a re-aligned leader replaces the leader when it explains this much more"
+    )
     inlier_m: float = Field(0.3, gt=0, description="a point is explained within this distance [m]")
     landmark_deg: float = Field(5.0, gt=0, description="landmark-level evidence: angle tolerance [deg]")
     landmark_m: float = Field(0.4, gt=0, description="landmark-level evidence: offset tolerance [m]")
     # decision
     min_overlap: float = Field(
-        0.225, ge=0, le=1,
+        0.2, ge=0, le=1,
         description="the best hypothesis must explain at least this share (chosen on the calibration split)",
     )
     max_rival_ratio: float = Field(
-        0.725, gt=0, le=1,
+        0.75, gt=0, le=1,
         description="ambiguous when a distinct rival scores more than this fraction of the best (calibration split)",
     )
     min_landmark_overlap: float = Field(
@@ -68,7 +81,7 @@ class VerificationConfig(BaseModel):
         "on fuzz seed 1 of bench/fuzz_validity.py, reported on seed 0)",
     )
     confidence_coef: tuple[float, float, float] = Field(
-        (-7.722, 30.183, 2.677),
+        (-12.196, 50.904, 4.202),
         description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio)), fitted on "
         "the calibration split of bench/verification.py",
     )

@@ -112,6 +112,29 @@ def translation_redundancy(
     return float(max(w[0], 0.0)), V[:, 0], float(max(wl[k, 0], 0.0)), np.r_[Vl[k, :, 0], 0.0]
 
 
+def local_perturbations(
+    T_target_source: NDArray[np.float64], centre: NDArray[np.float64], step_m: float, reach_m: float,
+    yaw_deg: float,
+) -> NDArray[np.float64]:
+    """(H, 4, 4) starts around a transform: a horizontal grid of offsets (every ``step_m`` up to
+    ``reach_m``) times yaws of (-yaw_deg, 0, +yaw_deg) about the vertical through ``centre``
+    (the transformed source centroid, so a yaw does not swing far points away).
+
+    Point alignment from a landmark registration that is 1-2 m off (plane fits on partial,
+    noisy views) converges to a nearby local optimum; scoring these starts finds the basin of
+    the better one. Frames are z-up."""
+    g = np.arange(-reach_m, reach_m + 1e-9, step_m)
+    dx, dy, yaw = np.meshgrid(g, g, np.radians([-yaw_deg, 0.0, yaw_deg]), indexing="ij")
+    dx, dy, yaw = dx.ravel(), dy.ravel(), yaw.ravel()
+    c, s_ = np.cos(yaw), np.sin(yaw)
+    D = np.zeros((len(yaw), 4, 4))
+    D[:, 0, 0], D[:, 0, 1], D[:, 1, 0], D[:, 1, 1] = c, -s_, s_, c
+    D[:, 2, 2] = D[:, 3, 3] = 1.0
+    # rotate about the centre, then shift: x -> R (x - c) + c + d
+    D[:, :3, 3] = centre - np.einsum("hij,j->hi", D[:, :3, :3], centre) + np.c_[dx, dy, np.zeros_like(dx)]
+    return D @ T_target_source
+
+
 def candidate_cliques(
     W: sp.csr_matrix, winner: NDArray[np.int64], cfg: VerificationConfig, solver: ClipperConfig,
 ) -> list[Candidate]:
