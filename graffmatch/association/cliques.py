@@ -130,19 +130,14 @@ def _objectives(indptr, indices, data, flat, off, m):
     return out
 
 
-def _csr64(W: sp.csr_matrix) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
-    """(indptr, indices, data) as int64 / int64 / float64, converted once per graph: verification
-    calls the kernels above dozens of times on one (float32, int32) graph, and converting it on
-    every call cost more than the kernels (W1: ~6 ms per match). Cached on the matrix, keyed by
-    the identity of its arrays (a matrix given new arrays is converted again)."""
-    key = (W.indptr, W.indices, W.data)
-    c = getattr(W, "_graffmatch_csr64", None)
-    if c is not None and all(a is b for a, b in zip(c[0], key, strict=True)):
-        return c[1]
-    out = (W.indptr.astype(np.int64, copy=False), W.indices.astype(np.int64, copy=False),
-           W.data.astype(np.float64, copy=False))
-    try:
-        W._graffmatch_csr64 = (key, out)
-    except AttributeError:  # a matrix type without instance attributes: convert every time
-        pass
-    return out
+def _csr64(W: sp.csr_matrix) -> tuple[NDArray, NDArray, NDArray]:
+    """(indptr, indices, data) for the kernels, without copies when they are int32/int64 and
+    float32/float64: the kernels accumulate in float64 (a float32 weight converts exactly), so
+    the results equal those on converted arrays. Verification calls the kernels dozens of times
+    on one (float32, int32) graph; converting it on every call cost more than the kernels
+    (W1: ~6 ms per match), and a converted copy of a W3 graph is ~700 MB."""
+    ints, floats = (np.int32, np.int64), (np.float32, np.float64)
+    indptr = W.indptr if W.indptr.dtype in ints else W.indptr.astype(np.int64)
+    indices = W.indices if W.indices.dtype in ints else W.indices.astype(np.int64)
+    data = W.data if W.data.dtype in floats else W.data.astype(np.float64)
+    return indptr, indices, data
