@@ -27,7 +27,7 @@ from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.registration.closed_form import register_landmarks
 from graffmatch.verification.config import VerificationConfig
 from graffmatch.verification.decision import Hypothesis
-from graffmatch.verification.verify import Evidence, verify_graph
+from graffmatch.verification.verify import Evidence, evidence_for, verify_graph
 
 TypeName = Literal["point", "line", "plane"]
 _TYPE_IDS = {"point": LandmarkType.POINT, "line": LandmarkType.LINE, "plane": LandmarkType.PLANE}
@@ -359,6 +359,14 @@ class GraffMatcher:
         D_s = self.distance_matrix(src)
         D_t = self.distance_matrix(tgt)
         timings = {"distances": time.perf_counter() - t0}
+        filtered = len(src_idx) != len(source) or len(tgt_idx) != len(target)
+        if evidence is None and filtered and cfg.verification.enabled:
+            # the types restrict what is matched, not what verifies it: with poles only, the
+            # poles' own points are too few to tell a right answer from a wrong one (lines-only
+            # precision 0.77 -> 1.00 on sim-downtown with every landmark's support points)
+            t1 = time.perf_counter()
+            evidence = evidence_for(source, target, cfg.verification)
+            timings["support"] = time.perf_counter() - t1
         res = match_with_distances(src, tgt, D_s, D_t, cfg, associations, timings, evidence)
         if len(src_idx) != len(source) or len(tgt_idx) != len(target):
             def back(a: np.ndarray) -> np.ndarray:

@@ -61,11 +61,11 @@ class VerificationConfig(BaseModel):
     landmark_m: float = Field(0.4, gt=0, description="landmark-level evidence: offset tolerance [m]")
     # decision
     min_overlap: float = Field(
-        0.2, ge=0, le=1,
+        0.175, ge=0, le=1,
         description="the best hypothesis must explain at least this share (chosen on the calibration split)",
     )
     max_rival_ratio: float = Field(
-        0.75, gt=0, le=1,
+        0.775, gt=0, le=1,
         description="ambiguous when a distinct rival scores more than this fraction of the best (calibration split)",
     )
     min_landmark_overlap: float = Field(
@@ -81,7 +81,7 @@ class VerificationConfig(BaseModel):
         "on fuzz seed 1 of bench/fuzz_validity.py, reported on seed 0)",
     )
     confidence_coef: tuple[float, float, float] = Field(
-        (-12.196, 50.904, 4.202),
+        (-10.247, 55.938, 0.862),
         description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio)), fitted on "
         "the calibration split of bench/verification.py",
     )

@@ -257,3 +257,39 @@ def test_local_search_turns_a_near_miss_into_the_right_answer():
     r, t = transform_errors(h.T_target_source, T_true)
     assert r < 0.5 and t < 0.2, (r, t)
     assert h.score > 0.8 and "T_before_local_search" in h.info
+
+
+def _scene_with_points(rng: np.random.Generator) -> LandmarkSet:
+    """Poles and walls with their support points (as the extractor stores them)."""
+    types, dirs, anchors, pts, off = [], [], [], [], [0]
+    for x, y in rng.uniform(-15, 15, (8, 2)):
+        types.append(1), dirs.append([0, 0, 1]), anchors.append([x, y, 0.0])
+        pts.append(np.c_[rng.normal(x, 0.05, 60), rng.normal(y, 0.05, 60), rng.uniform(0, 4, 60)])
+        off.append(off[-1] + 60)
+    for n, d in (([1, 0, 0], 18.0), ([-1, 0, 0], 18.0), ([0, 1, 0], 14.0), ([0, -1, 0], 14.0)):
+        n = np.array(n, float)
+        u = np.cross(n, [0, 0, 1.0])
+        s = rng.uniform(-12, 12, 300)
+        pts.append(d * n + s[:, None] * u + np.c_[np.zeros(300), np.zeros(300), rng.uniform(0, 6, 300)])
+        types.append(2), dirs.append(n), anchors.append(d * n + [0, 0, 3.0])
+        off.append(off[-1] + 300)
+    return LandmarkSet.from_arrays(types, dirs, anchors, None, np.vstack(pts), off)
+
+
+def test_type_filtered_matching_is_verified_on_every_support_point():
+    """Lines-only matching (poles) is verified against all support points, not the poles'
+    few: the types restrict what is matched, not the evidence."""
+    from graffmatch.verification.verify import evidence_for
+
+    tgt = _scene_with_points(np.random.default_rng(1))
+    T = make_transform(rot_z(0.7), [4.0, -2.0, 0.0])
+    src = tgt.transform(invert(T))
+    cfg = GraffMatchConfig(landmark_types=["line"])
+    m = GraffMatcher(cfg)
+    res = m.match(src, tgt)
+    full = m.match(src, tgt, evidence=evidence_for(src, tgt, cfg.verification))
+    poles = [0, 1, 2, 3, 4, 5, 6, 7]
+    only_poles = m.match(src, tgt, evidence=evidence_for(src[poles], tgt[poles], cfg.verification))
+    assert res.overlap == pytest.approx(full.overlap) and "support" in res.timings
+    assert res.overlap != pytest.approx(only_poles.overlap)
+    assert not _wrong(res, T)
