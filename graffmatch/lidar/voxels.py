@@ -37,7 +37,7 @@ MAX_COLUMNS = 64_000_000
 
 @dataclass(frozen=True)
 class VoxelGrid:
-    """Occupied voxels of a cloud: centroids, raw moments and the neighbour table (5x5x5).
+    """Occupied voxels of a cloud: centroids, raw moments and the 26-neighbour table.
 
     Moments are about ``origin`` (the grid's corner) so that far clouds keep their precision.
     """
@@ -48,11 +48,19 @@ class VoxelGrid:
     counts: NDArray[np.int64]  # (V,)
     sums: Array  # (V, 3) sum of (p - origin)
     outer: Array  # (V, 6) sums of xx, xy, xz, yy, yz, zz of (p - origin)
-    neighbours: NDArray[np.int32]  # (V, 124) occupied neighbours (-1 none): 26 at distance 1, then 98 at 2
+    neighbours: NDArray[np.int32]  # (V, 26) occupied neighbours (-1 none)
     point_voxel: NDArray[np.int64]  # (N,) voxel of each input point
+    columns: tuple  # voxel indices and the per-column z ranges / slots (for ring2)
 
     def __len__(self) -> int:
         return int(self.counts.shape[0])
+
+    def ring2(self, need: NDArray[np.bool_]) -> NDArray[np.int32]:
+        """(V, 98) occupied neighbours two voxels away of the voxels in ``need`` (else -1):
+        computed only where needed (planar and retried voxels, ~1/3 of a KITTI scan)."""
+        if len(self) == 0:
+            return np.zeros((0, 98), np.int32)
+        return _ring(np.asarray(need, np.bool_), 2, *self.columns)
 
 
 @dataclass(frozen=True)
@@ -92,6 +100,35 @@ def _voxelise(P, origin, inv):
         nx = max(nx, a + 1)
         ny = max(ny, b + 1)
     return ix, iy, iz, nx, ny
+
+
+@nb.njit(cache=True)
+def _ring(need, r, vx, vy, vz, zlo, zhi, first, slot, nx, ny):
+    """Occupied neighbours at Chebyshev distance exactly ``r`` (1: 26, 2: 98 columns) of the
+    voxels flagged in ``need`` (-1: none, or not needed)."""
+    V = vx.shape[0]
+    w = (2 * r + 1) ** 3 - (2 * r - 1) ** 3
+    nbr = np.full((V, w), -1, np.int32)
+    for v in range(V):
+        if not need[v]:
+            continue
+        j = 0
+        for dx in range(-r, r + 1):
+            x = vx[v] + dx
+            for dy in range(-r, r + 1):
+                y = vy[v] + dy
+                ok = 0 <= x < nx and 0 <= y < ny
+                c = x * ny + y if ok else 0
+                lo = zlo[c] if ok else 1
+                hi = zhi[c] if ok else 0
+                for dz in range(-r, r + 1):
+                    if max(abs(dx), abs(dy), abs(dz)) != r:
+                        continue
+                    z = vz[v] + dz
+                    if lo <= z <= hi:
+                        nbr[v, j] = slot[first[c] + z - lo]
+                    j += 1
+    return nbr
 
 
 @nb.njit(cache=True)
@@ -142,32 +179,8 @@ def _index(P, origin, ix, iy, iz, nx, ny):
         s2[v, 3] += y * y
         s2[v, 4] += y * z
         s2[v, 5] += z * z
-    # Columns 0-25: the 26 neighbours at Chebyshev distance 1; 26-123: the 98 at distance 2.
-    nbr = np.full((V, 124), -1, np.int32)
-    for v in range(V):
-        j1 = 0
-        j2 = 26
-        for dx in range(-2, 3):
-            x = vx[v] + dx
-            for dy in range(-2, 3):
-                y = vy[v] + dy
-                ok = 0 <= x < nx and 0 <= y < ny
-                c = x * ny + y if ok else 0
-                for dz in range(-2, 3):
-                    ring = max(abs(dx), abs(dy), abs(dz))
-                    if ring == 0:
-                        continue
-                    z = vz[v] + dz
-                    u = -1
-                    if ok and zlo[c] <= z <= zhi[c]:
-                        u = slot[first[c] + z - zlo[c]]
-                    if ring == 1:
-                        nbr[v, j1] = u
-                        j1 += 1
-                    else:
-                        nbr[v, j2] = u
-                        j2 += 1
-    return cnt, s1, s2, nbr, pv
+    nbr = _ring(np.ones(V, np.bool_), 1, vx, vy, vz, zlo, zhi, first, slot, nx, ny)
+    return cnt, s1, s2, nbr, pv, (vx, vy, vz, zlo, zhi, first, slot, nx, ny)
 
 
 def build_voxel_grid(points: Array, size: float) -> VoxelGrid:
@@ -176,16 +189,16 @@ def build_voxel_grid(points: Array, size: float) -> VoxelGrid:
     if P.shape[0] == 0:
         z = np.zeros((0, 3))
         return VoxelGrid(np.zeros(3), size, z, np.zeros(0, np.int64), z, np.zeros((0, 6)),
-                         np.zeros((0, 124), np.int32), np.zeros(0, np.int64))  # fmt: skip
+                         np.zeros((0, 26), np.int32), np.zeros(0, np.int64), ())  # fmt: skip
     origin = P.min(axis=0)
     ix, iy, iz, nx, ny = _voxelise(P, origin, 1.0 / size)
     if nx * ny > MAX_COLUMNS:
         raise InvalidInputError(
             f"voxel grid of {nx} x {ny} columns of {size} m is too large; crop the cloud (max_range)"
         )
-    cnt, s1, s2, nbr, pv = _index(P, origin, ix, iy, iz, nx, ny)
+    cnt, s1, s2, nbr, pv, cols = _index(P, origin, ix, iy, iz, nx, ny)
     cen = s1 / cnt[:, None] + origin
-    return VoxelGrid(origin, float(size), cen, cnt, s1, s2, nbr, pv)
+    return VoxelGrid(origin, float(size), cen, cnt, s1, s2, nbr, pv, cols)
 
 
 @nb.njit(cache=True, inline="always")
@@ -236,24 +249,25 @@ def _plane_of(n, s0, s1, s2, o0, o1, o2, o3, o4, o5):
 
 
 @nb.njit(cache=True)
-def _local_planes(cnt, s1, s2, nbr, max_variation, min_flatness, min_points):
-    """Per voxel: the plane of its 3x3x3 neighbourhood (normal, surface variation, points), or
-    of its 5x5x5 one when the smaller is no plane (far surfaces: scan lines more than a voxel
-    apart leave one line per 3x3x3 block)."""
+def _local_planes(cnt, s1, s2, nbr, extra, todo, normals, variation, planar, max_variation,
+                  min_flatness, min_points):  # fmt: skip
+    """For the voxels in ``todo``: the plane of the moments summed over the voxel, its ``nbr``
+    and (when ``extra`` has rows) its ``extra`` neighbours; fills normals, surface variation
+    l0 / (l0 + l1 + l2) and the planar flag in place. Returns, per voxel, whether a wider
+    neighbourhood may help: not planar, yet not volumetric (too few points, or a line)."""
     V = cnt.shape[0]
-    normals = np.zeros((V, 3))
-    variation = np.full(V, np.inf)
-    planar = np.zeros(V, np.bool_)
+    retry = np.zeros(V, np.bool_)
     o = np.zeros(6)
     for v in range(V):
+        if not todo[v]:
+            continue
         n = cnt[v]
         t0, t1, t2 = s1[v, 0], s1[v, 1], s1[v, 2]
         for k in range(6):
             o[k] = s2[v, k]
-        for width in (26, 124):
-            start = 0 if width == 26 else 26
-            for j in range(start, width):
-                u = nbr[v, j]
+        for tab in (nbr, extra):
+            for j in range(tab.shape[1]):
+                u = tab[v, j]
                 if u >= 0:
                     n += cnt[u]
                     t0 += s1[u, 0]
@@ -261,23 +275,25 @@ def _local_planes(cnt, s1, s2, nbr, max_variation, min_flatness, min_points):
                     t2 += s1[u, 2]
                     for k in range(6):
                         o[k] += s2[u, k]
-            if n < 3:
-                continue
-            e0, e1, e2, a, b, c, _, _, _ = _plane_of(n, t0, t1, t2, o[0], o[1], o[2], o[3], o[4], o[5])
-            tot = e0 + e1 + e2
-            var = e0 / tot if tot > 0 else np.inf
-            flat = e1 / e2 if e2 > 0 else 0.0
-            if width == 26 or var <= max_variation:
-                normals[v, 0], normals[v, 1], normals[v, 2] = a, b, c
-                variation[v] = var
-            if var <= max_variation and flat >= min_flatness and n >= min_points:
-                planar[v] = True
-                break
-    return normals, variation, planar
+        if n < 3:
+            retry[v] = True
+            continue
+        e0, e1, e2, a, b, c, _, _, _ = _plane_of(n, t0, t1, t2, o[0], o[1], o[2], o[3], o[4], o[5])
+        tot = e0 + e1 + e2
+        var = e0 / tot if tot > 0 else np.inf
+        flat = e1 / e2 if e2 > 0 else 0.0
+        ok = var <= max_variation and flat >= min_flatness and n >= min_points
+        if ok or not planar[v] and (np.isinf(variation[v]) or var <= max_variation):
+            normals[v, 0], normals[v, 1], normals[v, 2] = a, b, c
+            variation[v] = var
+        planar[v] = ok
+        retry[v] = not ok and (var <= max_variation or n < min_points)
+    return retry
 
 
 @nb.njit(cache=True)
-def _grow(cnt, s1, s2, cen, nbr, normals, planar, order, cos_max, max_offset, min_voxels, refit):
+def _grow(cnt, s1, s2, cen, nbr, nbr2, normals, planar, order, cos_max, max_offset, min_voxels,
+          refit):  # fmt: skip
     V = cnt.shape[0]
     label = np.full(V, -1, np.int64)
     queue = np.empty(V, np.int64)
@@ -298,8 +314,8 @@ def _grow(cnt, s1, s2, cen, nbr, normals, planar, order, cos_max, max_offset, mi
         while head < tail:
             v = queue[head]
             head += 1
-            for j in range(nbr.shape[1]):  # across gaps of one voxel too (far scan lines)
-                u = nbr[v, j]
+            for j in range(nbr.shape[1] + nbr2.shape[1]):  # across one-voxel gaps too (far lines)
+                u = nbr[v, j] if j < nbr.shape[1] else nbr2[v, j - nbr.shape[1]]
                 if u < 0 or label[u] >= 0 or not planar[u]:
                     continue
                 if abs(nxr * normals[u, 0] + nyr * normals[u, 1] + nzr * normals[u, 2]) < cos_max:
@@ -351,12 +367,20 @@ def grow_planes(
     """
     if len(grid) == 0:
         return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
-    normals, variation, planar = _local_planes(
-        grid.counts, grid.sums, grid.outer, grid.neighbours, max_variation, min_flatness, min_points
-    )
+    V = len(grid)
+    normals = np.zeros((V, 3))
+    variation = np.full(V, np.inf)
+    planar = np.zeros(V, np.bool_)
+    args = (max_variation, min_flatness, min_points)
+    none = np.zeros((V, 0), np.int32)
+    retry = _local_planes(grid.counts, grid.sums, grid.outer, grid.neighbours, none,
+                          np.ones(V, np.bool_), normals, variation, planar, *args)  # fmt: skip
+    nbr2 = grid.ring2(planar | retry)
+    _local_planes(grid.counts, grid.sums, grid.outer, grid.neighbours, nbr2, retry, normals,
+                  variation, planar, *args)  # fmt: skip
     order = np.argsort(variation, kind="stable")
     labels, _ = _grow(
-        grid.counts, grid.sums, grid.outer, grid.centroids - grid.origin, grid.neighbours,
+        grid.counts, grid.sums, grid.outer, grid.centroids - grid.origin, grid.neighbours, nbr2,
         normals, planar, order, float(np.cos(np.radians(grow_angle_deg))), float(max_offset),
         int(min_voxels), 8,
     )  # fmt: skip

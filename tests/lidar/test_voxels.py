@@ -29,15 +29,21 @@ def test_grid_moments_centroids_and_neighbours() -> None:
         assert len(np.unique(keys[g.point_voxel == v], axis=0)) == 1
     # the neighbour relation is symmetric and joins voxels one index step apart
     vk = np.array([keys[g.point_voxel == v][0] for v in range(len(g))])
-    # (columns 0-25: distance 1, 26-123: distance 2)
-    for v in range(0, len(g), 37):
-        for j, u in enumerate(g.neighbours[v]):
+    # (ring2: the neighbours two voxels away, only of the voxels asked for)
+    need = np.zeros(len(g), bool)
+    need[::37] = True
+    ring2 = g.ring2(need)
+    assert np.all(ring2[~need] == -1)
+    table = np.hstack([g.neighbours, np.where(need[:, None], ring2, -1)])
+    full2 = g.ring2(np.ones(len(g), bool))
+    for v in np.flatnonzero(need):
+        for j, u in enumerate(table[v]):
             if u >= 0:
-                assert v in g.neighbours[u]
+                assert v in (g.neighbours[u] if j < 26 else full2[u])
                 assert np.abs(vk[u] - vk[v]).max() == (1 if j < 26 else 2)
     # and misses none: all 26 + 98 neighbours of an interior voxel of a dense cube exist
-    assert np.sum(g.neighbours[:, :26] >= 0, axis=1).max() == 26
-    assert np.sum(g.neighbours >= 0, axis=1).max() == 124
+    assert np.sum(g.neighbours >= 0, axis=1).max() == 26
+    assert np.sum(full2 >= 0, axis=1).max() == 98
 
 
 def test_grid_is_deterministic_and_order_free() -> None:
