@@ -283,7 +283,7 @@ def _local_planes(cnt, s1, s2, nbr, extra, todo, normals, variation, planar, max
         var = e0 / tot if tot > 0 else np.inf
         flat = e1 / e2 if e2 > 0 else 0.0
         ok = var <= max_variation and flat >= min_flatness and n >= min_points
-        if ok or not planar[v] and (np.isinf(variation[v]) or var <= max_variation):
+        if ok or (not planar[v] and (np.isinf(variation[v]) or var <= max_variation)):
             normals[v, 0], normals[v, 1], normals[v, 2] = a, b, c
             variation[v] = var
         planar[v] = ok
