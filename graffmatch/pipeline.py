@@ -6,9 +6,12 @@ the demo, the evaluation's GraffMatch methods and ``graffmatch loops``; its conf
 pydantic model, written next to every result.
 
 With raw scans at hand, the winner is refined by ICP on the voxel-downsampled non-ground scans
-(or on the matched landmarks' points), and a refinement that moves the verified answer by more
-than a rival would differ (``verification.rival_deg`` / ``rival_m``) makes the result invalid:
-landmarks and points then disagree about where the scans are.
+(or on the matched landmarks' points). ``register`` hands ICP the extractor's own voxel cloud
+of each scan with its normals (``LandmarkExtractor.last_cloud``), so nothing is voxelised or
+normal-estimated twice (``refine`` called with raw scans only re-voxelises them). A refinement
+that moves the verified answer by more than a rival would differ (``verification.rival_deg`` /
+``rival_m``) makes the result invalid: landmarks and points then disagree about where the scans
+are.
 """
 
 from __future__ import annotations
