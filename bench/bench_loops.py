@@ -49,8 +49,12 @@ def _strip_curves(res: list[dict]) -> list[dict]:
     return res
 
 
-def merge(dirs: list[Path], json_path: Path | None) -> None:
-    """One table from several runs on the same scans, rows ordered by sequence, then run."""
+def merge(dirs: list[Path], json_path: Path | None, timed: list[Path]) -> None:
+    """One table from several runs on the same scans, rows ordered by sequence, then run.
+
+    A method that appears in several runs is labelled with its run folder's name; our rows of the
+    first run take their ms/query from the timed runs (mode quick-20, the default).
+    """
     from graffmatch.evaluation.sequence_benchmark import format_table, plot_pr
 
     res, walls = [], {}
@@ -59,15 +63,43 @@ def merge(dirs: list[Path], json_path: Path | None) -> None:
         for r in rows:
             r["run_dir"] = str(d)
         res += rows
+    count: dict[tuple[str, str], int] = {}
+    for r in res:
+        count[(r["sequence"], r["method"])] = count.get((r["sequence"], r["method"]), 0) + 1
+    for r in res:
+        if count[(r["sequence"], r["method"])] > 1:
+            r["method"] = f"{r['method']} [{Path(r['run_dir']).name}]"
+    ms = {}
+    for t in timed:
+        for row in json.loads(t.read_text())["rows"]:
+            if row["mode"] == "quick-20":
+                ms[row["drive"]] = (row["ms_per_query_mean"], str(t))
+    for r in res:
+        if r["method"].startswith("ours") and r["sequence"] in ms and r["run_dir"] == str(dirs[0]):
+            r["seconds_per_query_run"] = r["seconds_per_query"]
+            r["seconds_per_query"] = ms[r["sequence"]][0] / 1e3
+            r["seconds_per_query_source"] = ms[r["sequence"]][1]
         log = d / "wall_s.json"
         if log.is_file():
             walls[str(d)] = json.loads(log.read_text())
+    for r in res:  # precision / recall at our default threshold, read off the PR curves
+        if r["method"].startswith("ours"):
+            for key in ("place_5m", "e2e_5m"):
+                c = r[key]["curve"]
+                i = [k for k, t in enumerate(c["threshold"]) if t >= 0.5]
+                r[key]["at_min_confidence_0.5"] = (
+                    {"precision": c["precision"][i[-1]], "recall": c["recall"][i[-1]]} if i else None
+                )
     seq_order = list(dict.fromkeys(r["sequence"] for r in res))
     res.sort(key=lambda r: (seq_order.index(r["sequence"]), [str(d) for d in dirs].index(r["run_dir"])))
     (dirs[0].parent / "merged").mkdir(exist_ok=True)
     plot_pr(res, dirs[0].parent / "merged")
     table = format_table(res)
     print(table)
+    for r in res:
+        if "at_min_confidence_0.5" in r["place_5m"]:
+            print(r["sequence"], r["method"], "at confidence >= 0.5: place", r["place_5m"]["at_min_confidence_0.5"],
+                  "e2e", r["e2e_5m"]["at_min_confidence_0.5"])
     if json_path:
         json_path.parent.mkdir(parents=True, exist_ok=True)
         json_path.write_text(json.dumps({"machine": machine(), "runs": walls, "table": table,
@@ -82,6 +114,11 @@ def main() -> None:
     ap.add_argument("--prepare", action="store_true", help="only simulate and extract (untimed)")
     ap.add_argument("--methods", nargs="+", default=["ours", "scan-context-icp", "mapclosures-gt"])
     ap.add_argument("--no-courtyard", action="store_true")
+    ap.add_argument("--timed", type=Path, nargs="*", default=None,
+                    help="with --merge: bench_loops_speed.py JSONs whose quick-20 means replace our "
+                    "rows' ms/query (the runs here are niced and loaded)")
+    ap.add_argument("--only", nargs="+", default=None,
+                    help="run only these sequences (folder names), in this order")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--merge", type=Path, nargs="+", default=None,
@@ -89,7 +126,7 @@ def main() -> None:
                     "in separate processes) into one table and --json")
     args = ap.parse_args()
     if args.merge:
-        merge(args.merge, args.json)
+        merge(args.merge, args.json, args.timed or [])
         return
 
     from graffmatch.evaluation.sequence_benchmark import benchmark_config, run_sequence_benchmark
@@ -97,6 +134,9 @@ def main() -> None:
     seqs = simulate(args.data, args.scans)
     if not args.no_courtyard and COURTYARD.is_dir():
         seqs.append(COURTYARD.resolve())
+    if args.only:
+        by_name = {p.name: p for p in seqs}
+        seqs = [by_name[n] for n in args.only]
     t0 = time.perf_counter()
     methods = ["ours"] if args.prepare else args.methods
     table = run_sequence_benchmark(seqs, args.out, methods=methods, workers=args.workers,

@@ -72,6 +72,52 @@ class PeakMemory:
         self._t.join()
 
 
+def status(out: Path) -> dict:
+    """What a run folder holds now, from its files (sizes, modification times, query log)."""
+    import json
+
+    import numpy as np
+
+    tabs = sorted((out / "landmarks").glob("[0-9]" * 6 + ".npz"))
+    mt = np.array([p.stat().st_mtime for p in tabs])
+    sizes = np.array([p.stat().st_size for p in tabs])
+    q = out / "queries.jsonl"
+    lines = q.read_text().splitlines() if q.is_file() else []
+    recs = []
+    for line in lines:
+        try:
+            recs.append(json.loads(line))
+        except json.JSONDecodeError:
+            pass
+    desc_bytes = 96 * 4
+    running = {}
+    for d in os.listdir("/proc"):  # a scale run still going: its process tree's memory now
+        if d.isdigit() and int(d) != os.getpid():
+            try:
+                cmd = open(f"/proc/{d}/cmdline", "rb").read().replace(b"\0", b" ").decode()
+            except OSError:
+                continue
+            if "bench_loops_scale.py" in cmd and "--status" not in cmd:
+                running[d] = _tree_rss_mb(int(d))
+    res = {
+        "machine": machine(),
+        "out": str(out),
+        "landmark_tables": len(tabs),
+        "table_bytes_mean": float(sizes.mean()) if len(tabs) else None,
+        "table_bytes_max": int(sizes.max()) if len(tabs) else None,
+        "database_bytes_per_scan": float(sizes.mean() + desc_bytes) if len(tabs) else None,
+        "extraction_first_to_last_table_s": float(mt.max() - mt.min()) if len(tabs) else None,
+        "queries_done": len(recs),
+        "queries_file_age_s": float(time.time() - q.stat().st_mtime) if q.is_file() else None,
+        "verified_per_query": float(np.mean([sum(c.get("verified", True) for c in r["candidates"]) for r in recs]))
+        if recs else None,
+        "running_scale_runs_rss_tree_mb": running,
+        "queries_with_loop_ge_0.5": int(sum(any(c["confidence"] >= 0.5 for c in r["candidates"]) for r in recs)),
+    }
+    print(res)
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=Path("/tmp/loops_scale/data"))
@@ -81,7 +127,13 @@ def main() -> None:
     ap.add_argument("--executor", default="local")
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--status", action="store_true",
+                    help="do not run: report the state of a run folder (--out), e.g. one still running "
+                    "or cut by a deadline: tables extracted and their size, extraction span, queries done")
     args = ap.parse_args()
+    if args.status:
+        write_json(str(args.json) if args.json else None, status(args.out))
+        return
 
     import numpy as np
 
