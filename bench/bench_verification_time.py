@@ -12,6 +12,10 @@ the process waits for a core on a loaded machine (it still includes slow-downs f
 with other processes).
 
     python bench/bench_verification_time.py --json bench/results/verification_time.json
+
+``--sets DIR`` stores the extracted landmark sets there on the first run and loads them on the
+next, so runs of different code versions time verification on the same inputs (the extractor
+changes what is matched).
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import numpy as np
 from graffmatch.datasets.folder import KittiFolder
 from graffmatch.datasets.landmark_scene import make_scene_pair
 from graffmatch.evaluation.suites import shared_data_root, suite_config
+from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.lidar.extractor import LandmarkExtractor, LandmarkExtractorConfig
 from graffmatch.matcher import GraffMatchConfig, GraffMatcher
 from graffmatch.pipeline import RefinementConfig, ScanMatcher, ScanMatcherConfig
@@ -64,17 +69,29 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=15)
     ap.add_argument("--json", default=None)
     ap.add_argument("--skip-w2", action="store_true", help="leave out W2 (~1 s per call on a loaded machine)")
+    ap.add_argument("--sets", default=None, help="directory to store / load the extracted landmark sets")
     a = ap.parse_args()
     root = shared_data_root()
     on = GraffMatcher()
     off = GraffMatcher(GraffMatchConfig(verification=VerificationConfig(enabled=False)))
     rows = []
     kitti = KittiFolder(root / "kitti00_first6")
-    ex = LandmarkExtractor(LandmarkExtractorConfig())
-    k0, k5 = ex.extract(kitti[0].points), ex.extract(kitti[5].points)
     court = KittiFolder(root / "balm_courtyard")
-    exc = LandmarkExtractor(suite_config("balm_courtyard").extractor)
-    c = {i: exc.extract(court[i].points) for i in (10, 16, 40, 47, 70, 75)}
+    sets_dir = Path(a.sets) if a.sets else None
+
+    def extracted(name: str, ds, i: int, cfg: LandmarkExtractorConfig) -> LandmarkSet:
+        f = sets_dir / f"{name}_{i:03d}.npz" if sets_dir else None
+        if f is not None and f.exists():
+            return LandmarkSet.load(f)
+        ls = LandmarkExtractor(cfg).extract(ds[i].points)
+        if f is not None:
+            f.parent.mkdir(parents=True, exist_ok=True)
+            ls.save(f, include_points=True)
+        return ls
+
+    k0, k5 = (extracted("kitti", kitti, i, LandmarkExtractorConfig()) for i in (0, 5))
+    c = {i: extracted("courtyard", court, i, suite_config("balm_courtyard").extractor)
+         for i in (10, 16, 40, 47, 70, 75)}
     cases = {"KITTI 5->0": (k5, k0, 10.0), "courtyard 16->10": (c[16], c[10], 10.0),
              "courtyard 47->40": (c[47], c[40], 10.0), "courtyard 75->70": (c[75], c[70], 10.0)}
     for name, (n_poles, n_planes) in {"W1": (15, 30), "W2": (30, 60)}.items():
