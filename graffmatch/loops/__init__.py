@@ -3,8 +3,14 @@
 from graffmatch.loops.database import LandmarkDatabase, load_landmarks, save_landmarks
 from graffmatch.loops.descriptor import DescriptorConfig, landmark_descriptor
 from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig
+from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_check, quick_index
 from graffmatch.loops.retrieval import RetrievalConfig, eligible_count, make_retriever
-from graffmatch.loops.verify import LoopClosure, VerificationConfig, landmark_agreement
+from graffmatch.loops.verify import (
+    LoopClosure,
+    VerificationConfig,
+    landmark_agreement,
+    verify_query,
+)
 
 __all__ = [
     "DescriptorConfig",
@@ -12,6 +18,8 @@ __all__ = [
     "LoopClosure",
     "LoopDetector",
     "LoopDetectorConfig",
+    "QuickCheckConfig",
+    "QuickIndex",
     "RetrievalConfig",
     "VerificationConfig",
     "eligible_count",
@@ -19,5 +27,8 @@ __all__ = [
     "landmark_descriptor",
     "load_landmarks",
     "make_retriever",
+    "quick_check",
+    "quick_index",
     "save_landmarks",
+    "verify_query",
 ]

@@ -6,7 +6,9 @@
    extracts what changed.
 2. **Database** of landmark maps and descriptors, in scan order.
 3. **Queries**: for every scan, the candidates among the earlier scans outside the exclusion
-   window (:mod:`.retrieval`), verified with the matcher (:mod:`.verify`), in parallel chunks.
+   window (:mod:`.retrieval`), pre-screened by the BEV quick check (:mod:`.quickcheck`, its
+   per-scan index built before the query's clock starts) and the passing ones verified with the
+   matcher, best first, until one is accepted (:func:`.verify.verify_query`), in parallel chunks.
    Every finished query is appended to ``<out>/queries.jsonl`` at once, so a killed run resumes
    where it stopped.
 4. **Outputs**: ``loops.csv``, ``loops.g2o`` (loop edges; vertices when poses are known),

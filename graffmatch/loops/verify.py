@@ -5,7 +5,9 @@ trust needs more, so every candidate is also scored by *landmark agreement*: aft
 query's landmarks into the candidate's frame with the estimate, the fraction of them that lie
 on a landmark of the same type there (direction within ``agree_deg``, axis/plane offset within
 ``agree_m``, plane anchors within ``plane_anchor_m`` in the plane). When the matcher reports its
-own ``confidence`` (the verified matcher), that is combined with it.
+own ``confidence`` (the verified matcher), that is combined with it. :func:`verify_query` runs
+the cheap quick check (:mod:`.quickcheck`) on every retrieved candidate first, so that the
+matcher only sees the plausible ones, best first, and stops at the first accepted one.
 """
 
 from __future__ import annotations
