@@ -8,8 +8,10 @@ Single-threaded (NUMBA_NUM_THREADS=1). For each graph: the matcher's default sol
 the float32 weights the graph builder produces (float64, as stored in the .npz, with
 ``--float64``); time, precision and recall against gt_inliers, and the reference C++ CLIPPER's.
 
-``--cpp``: the binary built from bench/cpp/clipper_bench.cpp against a checkout of
-mit-acl/clipper (build line in that file). It then runs in this same run, on the same graphs
+``--cpp``: a timing program for the reference C++ CLIPPER (mit-acl/clipper), which is not part
+of this repository and is not built by it: the program takes ``GRAPH.bin REPEATS nonzero|dsd_heu``,
+reads the graph in the format of :func:`write_graph` and prints one JSON line with CLIPPER's
+own timer per repeat and the selection. It then runs in this same run, on the same graphs
 and the same seeded start vector, in blocks interleaved with the Python timings so that both
 see the same machine load; its time is its own timer (``soln.t``: the solve and the rounding,
 not the graph setup), ours is the whole ``solve_clipper`` call (input checks, pruning, greedy
@@ -49,7 +51,8 @@ def configs() -> dict[str, ClipperConfig]:
 
 
 def write_graph(path: Path, W: sp.csr_matrix, u0: np.ndarray) -> None:
-    """The graph in clipper_bench's format: upper-triangle COO + the start vector."""
+    """The graph for the --cpp program: int64 m, int64 nnz, int32 rows, int32 cols, float64 weights
+    (upper triangle, zero diagonal), float64 u0[m] (the same start vector as ours)."""
     U = sp.triu(W, k=1).tocoo()
     with path.open("wb") as f:
         np.array([W.shape[0], U.nnz], dtype=np.int64).tofile(f)
@@ -77,7 +80,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--graphs", default=str(GRAPHS))
     ap.add_argument("--repeats", type=int, default=20)
-    ap.add_argument("--cpp", default=None, help="path to the built bench/cpp/clipper_bench")
+    ap.add_argument("--cpp", default=None, help="path to a timing program for the reference C++ CLIPPER (not in this repository)")
     ap.add_argument("--float64", action="store_true", help="also time the float64 weights")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
