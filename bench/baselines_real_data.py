@@ -2,18 +2,28 @@
 
     PYTHONPATH=. .venv/bin/python bench/baselines_real_data.py [--data ../shared/data]
         [--balm-pairs 8] [--seed 0] [--methods GraffMatch ClusterMatch ...] [--json out.json]
+        [--sweep] [--sweep-balm-pairs 12]
+
+docs/baselines.md's tables come from
+    bench/baselines_real_data.py --sweep --json bench/results/baselines_real_data.json
 
 KITTI 00 pairs 0->5, 0->3, 1->5 and ``--balm-pairs`` BALM courtyard pairs drawn with ``--seed``
 among the pairs 3-12 m apart and >= 10 scans apart; default front end (no labels); no
 initial guess. Recall: rotation < 5 deg and translation < 1 m against the dataset's poses;
 AUC: mean output inlier ratio (LMR AUC, tau_d = 6 deg) of the landmark methods. This is a smoke
 test, not a benchmark: 3 + 8 pairs.
+
+``--sweep`` also runs the parameter studies behind the defaults of docs/baselines.md on the
+same KITTI pairs and ``--sweep-balm-pairs`` BALM pairs (same rule, same seed): CLIPPER-R^n and
+CLIPPER-CP at epsilon 1.0 / 2.0 / 4.0 / 8.1 m (sigma = epsilon / 4) and LiPMatch with the
+centroid-distance tolerance at 2.0 and 4.0 m.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 import warnings
 from pathlib import Path
@@ -41,7 +51,20 @@ def balm_pairs(poses: np.ndarray, n: int, seed: int) -> list[tuple[int, int]]:
     return sorted((int(i[k]), int(j[k])) for k in pick)
 
 
-def run(seq, pairs, methods, ex) -> dict:
+#: The parameter studies of ``--sweep``: (row label, method, parameters).
+SWEEP: tuple[tuple[str, str, dict], ...] = tuple(
+    (f"{m} epsilon {eps:g}", m, {"epsilon": eps, "sigma": eps / 4})
+    for m in ("CLIPPER-Rn", "CLIPPER-CP")
+    for eps in (1.0, 2.0, 4.0, 8.1)
+) + tuple(
+    (f"LiPMatch centroid tol {tol:g}", "LiPMatch", {"max_centroid_distance_diff": tol})
+    for tol in (2.0, 4.0)
+)
+
+
+def run(seq, pairs, methods, ex, params: dict[str, tuple[str, dict]] | None = None) -> dict:
+    """Each method (or each labelled ``params`` entry: label -> (method, parameters)) on
+    ``pairs`` of ``seq``; recall, LMR AUC and median time per label."""
     cache: dict[int, tuple] = {}
 
     def scan(k):
@@ -52,12 +75,13 @@ def run(seq, pairs, methods, ex) -> dict:
                 cache[k] = (pts, ex.extract(pts))
         return cache[k]
 
-    out = {m: {"ok": [], "oir": [], "ms": []} for m in methods}
+    params = params or {m: (m, {}) for m in methods}
+    out = {m: {"ok": [], "oir": [], "ms": []} for m in params}
     for a, b in pairs:
         (pa, la), (pb, lb) = scan(a), scan(b)
         T_gt = invert(seq.poses[a]) @ seq.poses[b]  # source b into target a
-        for m in methods:
-            meth = get_method(m)
+        for m, (name, kw) in params.items():
+            meth = get_method(name, **kw)
             t0 = time.perf_counter()
             res = meth.run(PairInput(source=lb, target=la, source_scan=pb, target_scan=pa))
             out[m]["ms"].append(1000 * (time.perf_counter() - t0))
@@ -84,6 +108,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--methods", nargs="*", default=None)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--sweep", action="store_true", help="also the parameter studies (SWEEP)")
+    ap.add_argument("--sweep-balm-pairs", type=int, default=12)
     args = ap.parse_args()
     methods = args.methods or [m for m in list_methods() if m != "GT-matches"]
     ex = LandmarkExtractor()
@@ -100,10 +126,24 @@ def main() -> None:
             auc = "–" if r["auc"] is None else f"{r['auc']:.2f}"
             cells.append(f"{r['recall']:.2f} / {auc} / {r['median_ms']:,.0f}")
         print(f"| {m} | {cells[0]} | {cells[1]} |")
+    if args.sweep:
+        study = {label: (m, kw) for label, m, kw in SWEEP}
+        pairs = balm_pairs(balm.poses, args.sweep_balm_pairs, args.seed)
+        res["sweep"] = {
+            "kitti": run(kitti, [(0, 5), (0, 3), (1, 5)], [], ex, study),
+            "balm": run(balm, pairs, [], ex, study),
+            "balm_pairs": pairs,
+        }
+        print("\n| setting | KITTI recall / AUC | BALM recall / AUC |")
+        print("|---|---|---|")
+        for label in study:
+            k, b = res["sweep"]["kitti"][label], res["sweep"]["balm"][label]
+            print(f"| {label} | {k['recall']:.2f} / {k['auc']:.2f} | {b['recall']:.2f} / {b['auc']:.2f} |")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
+        load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
         args.json.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
-                                         "results": res}, indent=1))  # fmt: skip
+                                         "load_avg": load, "results": res}, indent=1))  # fmt: skip
 
 
 if __name__ == "__main__":
