@@ -16,6 +16,10 @@ docs/baselines.md), so each variant gets the epsilon that served it best (tuned 
 * CLIPPER-R^n: epsilon = 4.0 m, sigma = 1.0 m (LMR AUC KITTI 0.91 vs 0.63 at 8.1 m);
 * CLIPPER-CP: epsilon = 1.0 m, sigma = 0.25 m (LMR AUC BALM 0.44 vs 0.21, KITTI 0.88 vs 0.76).
 
+Those figures are from the first run of the study, before it had a script; today's code,
+re-run with ``bench/baselines_real_data.py --sweep`` (docs/baselines.md), no longer singles
+these values out.
+
 Both can be overridden, as can any other ``GraffMatchConfig`` field (solver, kappa_max, ...).
 """
 
