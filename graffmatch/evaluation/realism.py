@@ -120,17 +120,22 @@ def graph_density(n_putative: int, n_edges: int) -> float:
 
 
 def pairs_at_distance(
-    T_world_lidar: NDArray, lo_m: float = 4.0, hi_m: float = 5.0, max_pairs: int = 8
+    T_world_lidar: NDArray,
+    lo_m: float = 4.0,
+    hi_m: float = 5.0,
+    max_pairs: int = 8,
+    every_b: bool = False,
 ) -> list[tuple[int, int]]:
     """Up to ``max_pairs`` scan pairs (a < b) whose positions are ``lo_m``-``hi_m`` apart,
-    spread evenly over the drive; each a is paired with the first b far enough from it."""
+    spread evenly over the drive; each a is paired with the first b far enough from it, or
+    with every such b when ``every_b`` (a short sequence such as KITTI's six scans)."""
     p = np.asarray(T_world_lidar, float)[:, :3, 3]
     cand = []
     for a in range(len(p)):
         d = np.linalg.norm(p[a + 1 :] - p[a], axis=1)
         ok = np.flatnonzero((d >= lo_m) & (d <= hi_m))
-        if len(ok):
-            cand.append((a, a + 1 + int(ok[0])))
+        for k in ok if every_b else ok[:1]:
+            cand.append((a, a + 1 + int(k)))
     if len(cand) <= max_pairs:
         return cand
     pick = np.linspace(0, len(cand) - 1, max_pairs).round().astype(int)
@@ -213,12 +218,14 @@ REALISM_COLUMNS: tuple[tuple[str, str, str], ...] = (
 
 
 def sequence_realism(
-    seq, pairs: list[tuple[int, int]], extractor=None, matcher=None
+    seq, pairs: list[tuple[int, int]], extractor=None, matcher=None, extra_frames=()
 ) -> dict:
     """The realism table's statistics of ``pairs`` of a dataset ``seq`` (scans, poses).
 
     No labels are read: poles come from the geometric front end as for a new user's data.
-    Returns ``summary`` (the table's numbers), ``scans`` and ``pairs`` (the records).
+    The per-scan statistics cover the scans of the pairs and ``extra_frames`` (a small real
+    sequence lends all its scans). Returns ``summary`` (the table's numbers), ``scans`` and
+    ``pairs`` (the records).
     """
     from graffmatch.geometry.transforms import invert
     from graffmatch.lidar.extractor import LandmarkExtractor
@@ -226,7 +233,7 @@ def sequence_realism(
 
     extractor = extractor or LandmarkExtractor()
     matcher = matcher or GraffMatcher()
-    frames = sorted({i for p in pairs for i in p})
+    frames = sorted({i for p in pairs for i in p} | {int(i) for i in extra_frames})
     lss, scans = {}, []
     for i in frames:
         ls, rec = scan_realism(seq[i].points, extractor)
@@ -237,28 +244,33 @@ def sequence_realism(
         {"a": a, "b": b, **pair_realism(lss[a], lss[b], invert(poses[a]) @ poses[b], matcher)}
         for a, b in pairs
     ]
+    return {"summary": summarize_realism(scans, recs), "scans": scans, "pairs": recs}
+
+
+def summarize_realism(scans: list[dict], pairs: list[dict]) -> dict:
+    """The table's numbers from per-scan and per-pair records (of one drive or several pooled:
+    means over scans and pairs, medians over all planes and all pairs)."""
     rms = np.concatenate([np.asarray(s["plane_rms_m"]) for s in scans] or [np.zeros(0)])
 
     def mean(key, rows):
         v = np.array([r[key] for r in rows], float)
         return float(np.nanmean(v)) if len(v) and np.isfinite(v).any() else float("nan")
 
-    summary = {
-        "shared_per_pair": mean("shared", recs),
+    return {
+        "shared_per_pair": mean("shared", pairs),
         "poles_per_scan": mean("poles", scans),
         "planes_per_scan": mean("planes", scans),
         "plane_rms_cm": 100.0 * float(np.median(rms)) if len(rms) else float("nan"),
-        "strict_repeatability": mean("strict_repeatability", recs),
+        "strict_repeatability": mean("strict_repeatability", pairs),
         "scattered_share": mean("scattered_share", scans),
         "ground_share": mean("ground_share", scans),
-        "trans_err_median_m": float(np.nanmedian([r["trans_err_m"] for r in recs]))
-        if recs
+        "trans_err_median_m": float(np.nanmedian([r["trans_err_m"] for r in pairs]))
+        if pairs
         else float("nan"),
-        "graph_density": mean("graph_density", recs),
+        "graph_density": mean("graph_density", pairs),
         "points_per_scan": mean("points", scans),
         "range_median_m": mean("range_median_m", scans),
         "intensity_mean": mean("intensity_mean", scans),
-        "n_pairs": len(recs),
+        "n_pairs": len(pairs),
         "n_scans": len(scans),
     }
-    return {"summary": summary, "scans": scans, "pairs": recs}

@@ -53,3 +53,30 @@ def test_pairs_at_distance_and_graph_density():
     pairs = pairs_at_distance(T, 4.0, 5.0, max_pairs=3)
     assert len(pairs) == 3 and all(b - a == 4 for a, b in pairs)
     assert graph_density(10, 45) == 1.0 and np.isnan(graph_density(1, 0))
+
+
+def test_every_b_pairs_and_pooled_summary():
+    """A short real sequence lends every pair in range (KITTI's six scans: 0-4, 0-5, 1-5), and
+    pooled drives give means over all scans/pairs and medians over all planes/pairs."""
+    from graffmatch.evaluation.realism import summarize_realism
+
+    T = np.tile(np.eye(4), (6, 1, 1))
+    T[:, 0, 3] = np.arange(6) * 0.86
+    assert pairs_at_distance(T, 3.4, 5.0, 8) == [(0, 4), (1, 5)]
+    assert pairs_at_distance(T, 3.4, 5.0, 8, every_b=True) == [(0, 4), (0, 5), (1, 5)]
+
+    def scan(poles, rms):
+        return {"poles": poles, "planes": 2, "plane_rms_m": rms, "scattered_share": 0.01,
+                "ground_share": 0.5, "points": 100, "range_median_m": 9.0, "intensity_mean": 0.3}  # fmt: skip
+
+    def pair(err):
+        return {"shared": 4, "strict_repeatability": 0.5, "trans_err_m": err, "graph_density": 0.3}
+
+    one = summarize_realism([scan(2, [0.02])], [pair(0.1)])
+    pooled = summarize_realism(
+        [scan(2, [0.02]), scan(6, [0.05, 0.07])], [pair(0.1), pair(5.0), pair(0.3)]
+    )
+    assert one["poles_per_scan"] == 2 and pooled["poles_per_scan"] == 4
+    assert np.isclose(pooled["plane_rms_cm"], 5.0)  # median of 2, 5, 7 cm
+    assert np.isclose(pooled["trans_err_median_m"], 0.3)  # a failure does not move the median
+    assert pooled["n_scans"] == 2 and pooled["n_pairs"] == 3

@@ -70,12 +70,17 @@ class BuildingsMixin:
         corner = max(1.0, cfg.setback[0])
         s0, s1 = s0 + corner, s1 - corner
         pos = s0 + self.u((0.0, 3.0))
+        # the side's building line comes from the detail stream: the layout draws stay the same
+        line = self.detail_rng.uniform(*cfg.setback) if cfg.building_line else None
         while pos < s1 - 4.0:
             if self.rng.random() < frontage:
                 w = min(self.u(cfg.building_width), s1 - pos)
                 if w < 6.0:
                     break
                 sb = self.u(cfg.setback)
+                if line is not None:
+                    j = cfg.building_line_jitter
+                    sb = max(0.0, line + self.detail_rng.uniform(-j, j))
                 d = min(self.u(cfg.building_depth), depth_room - sb)
                 if d > 4.0:
                     fp = self._footprint(lot, side, pos, pos + w, sb, sb + d)

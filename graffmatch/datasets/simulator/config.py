@@ -83,6 +83,13 @@ class WorldConfig(BaseModel):
     )
     balcony_prob: float = Field(0.0, ge=0, le=1, description="P(balcony) per upper-floor window")
     shop_sign_prob: float = Field(0.0, ge=0, le=1, description="P(shop sign) per ground-floor bay")
+    shop_front_prob: float = Field(
+        1.0,
+        ge=0,
+        le=1,
+        description="with facade_detail: P(a street face's ground floor is a shop front, glass "
+        "across most of each bay); other ground floors get ordinary windows, as houses do",
+    )
     leafy_vegetation: bool = Field(
         False,
         description="canopies, bushes and hedges of foliage: rays return from a random depth "
@@ -90,6 +97,31 @@ class WorldConfig(BaseModel):
     )
     hedge_prob: float = Field(
         0.0, ge=0, le=1, description="P(hedge) per stretch of lot edge behind the sidewalk"
+    )
+    facade_relief_m: float = Field(
+        0.0,
+        ge=0,
+        description="sigma of the depth of panel-sized relief on buildings, walls and fences "
+        "(cladding and siding panels, recessed bands, render undulations), added along the "
+        "ray by the sensor: unlike facade_roughness_m it is the same in every scan and survives "
+        "the front end's voxel averaging [m]",
+    )
+    facade_relief_cell_m: float = Field(
+        1.0, gt=0.1, description="size of a relief panel along the surface [m]"
+    )
+    building_line: bool = Field(
+        False,
+        description="the buildings of a block side share one building line (its setback, drawn "
+        "once per side) within +-building_line_jitter, as streets are built: adjacent facades "
+        "form one long, stepped street wall instead of one plane per building",
+    )
+    building_line_jitter: float = Field(
+        0.1, ge=0, description="half-range of each building's offset from its side's line [m]"
+    )
+    parked_car_scatter: bool = Field(
+        False,
+        description="parked cars stand 0-0.5 m from the curb line and up to ~4 deg askew, with "
+        "glass cabins: a row of them is not one flat wall",
     )
 
 

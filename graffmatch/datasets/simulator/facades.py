@@ -53,16 +53,6 @@ class FacadeDetailMixin:
         floors = [
             z0 + ground_h + k * floor_h for k in range(int((z1 - z0 - ground_h - 1.0) // floor_h))
         ]
-        # ground floor: shop windows, maybe a sign band above them
-        shop_h = rng.uniform(2.0, 2.8)
-        for c in centres:
-            glass.append(
-                [c - 0.42 * pitch, c + 0.42 * pitch, 0.0, 0.004, z0 + 0.4, z0 + 0.4 + shop_h]
-            )
-            if street_face and rng.random() < cfg.shop_sign_prob:
-                glass_top = z0 + 0.4 + shop_h
-                lo.append([c - 0.45 * pitch, c + 0.45 * pitch, 0.0, rng.uniform(0.15, 0.35),
-                           glass_top + 0.2, glass_top + rng.uniform(0.8, 1.2)])  # fmt: skip
         # stepped facade: bays (and with them their windows) stand out by a few cm, as
         # cladding, render and brick of real buildings do
         step = _steps(rng, n_bays)
@@ -70,6 +60,21 @@ class FacadeDetailMixin:
             if dz > 0:
                 lo.append([c - pitch / 2, c + pitch / 2, 0.0, dz, z0, z1])
         win_h = rng.uniform(1.3, 1.8)
+        # ground floor: shop fronts (glass across most of each bay, maybe a sign band above)
+        # or, on houses, ordinary windows; the glass sits on the bay's face, in front of it
+        shop_h = rng.uniform(2.0, 2.8)
+        shop = street_face and rng.random() < cfg.shop_front_prob
+        for c, dz in zip(centres, step, strict=True):
+            if not shop:
+                glass.append([c - win_w / 2, c + win_w / 2, dz, dz + 0.004, z0 + 0.9, z0 + 0.9 + win_h])
+                continue
+            glass.append(
+                [c - 0.42 * pitch, c + 0.42 * pitch, dz, dz + 0.004, z0 + 0.4, z0 + 0.4 + shop_h]
+            )
+            if rng.random() < cfg.shop_sign_prob:
+                glass_top = z0 + 0.4 + shop_h
+                lo.append([c - 0.45 * pitch, c + 0.45 * pitch, dz, dz + rng.uniform(0.15, 0.35),
+                           glass_top + 0.2, glass_top + rng.uniform(0.8, 1.2)])  # fmt: skip
         sill = rng.random() < 0.7
         for zf in floors:
             for c, dz in zip(centres, step, strict=True):

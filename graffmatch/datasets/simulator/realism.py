@@ -81,18 +81,25 @@ _REALISTIC = dict(
         balcony_prob=0.25,
         shop_sign_prob=0.4,
         leafy_vegetation=True,
+        # panel-sized relief (cladding, siding, recessed bands): KITTI's walls are 5-6 cm RMS
+        # after the front end's 0.4 m voxels, which per-point roughness alone never gives
+        facade_relief_m=0.04,
+        facade_relief_cell_m=1.0,
+        parked_car_scatter=True,
     ),
     style_world={
         "downtown": dict(
             car_prob=0.85, tree_prob=0.55, clutter_rate=8.0, sidewalk_width=3.0,
             street_light_prob=0.5, sign_rate=1.5, building_width=(14.0, 35.0),
             hedge_prob=0.3,
+            # one stepped street wall per block side, shops on most ground floors
+            building_line=True, shop_front_prob=0.7,
         ),
         "suburban": dict(
             car_prob=0.55, bush_rate=8.0, clutter_rate=4.0, street_light_prob=0.4, tree_prob=0.45,
-            hedge_prob=0.5,
+            hedge_prob=0.5, shop_front_prob=0.0,
         ),
-        "open-road": dict(car_prob=0.1, bush_rate=4.0),
+        "open-road": dict(car_prob=0.1, bush_rate=4.0, shop_front_prob=0.0),
     },
     # a car slows to ~4 m/s at a crossing and ~1.5 m/s in a U-turn (the ideal route keeps
     # 10 m/s: 70 deg of yaw between two scans in a U-turn, which no odometry survives)

@@ -256,6 +256,13 @@ def render_scan(
     if rough > 0:
         built = np.flatnonzero(np.isin(cls, (W.BUILDING, W.FENCE)))
         r[built] += rng.normal(0.0, rough, len(built)).astype(np.float32)
+    relief = float(getattr(world.config, "facade_relief_m", 0.0))
+    if relief > 0:
+        built = np.flatnonzero(np.isin(cls, (W.BUILDING, W.FENCE)))
+        r[built] += _panel_relief(
+            rays[idx[built]], t_hit[idx[built]], normals[idx[built]], inst[built],
+            relief, float(world.config.facade_relief_cell_m),
+        )  # fmt: skip
     inten = _INTENSITY_GAIN * echo * (1.0 - 0.4 * r / prof.max_range)
     inten = inten + rng.normal(0.0, prof.intensity_noise_std, len(idx)).astype(np.float32)
     pts = np.empty((len(idx), 4), np.float32)
@@ -266,6 +273,35 @@ def render_scan(
     if return_landmarks:
         return pts, labels, lm_hit
     return pts, labels
+
+
+def _panel_relief(
+    rays: NDArray, t_hit: NDArray, normals: NDArray, inst: NDArray, sigma: float, cell: float
+) -> NDArray[np.float32]:
+    """Range offsets of hits on a surface with panel-sized relief (cladding, siding, recessed
+    bands): the surface is cut into ``cell``-sized panels in its own plane, each standing out
+    by a depth with standard deviation ``sigma``, fixed per (object, panel) so that every scan
+    sees the same wall. A depth d along the normal is d / cos(incidence) along the ray."""
+    pos = rays[:, :3] + t_hit[:, None] * rays[:, 3:]
+    n = np.abs(normals)
+    # the panel grid lies in the surface: drop the axis the normal points along
+    drop = np.argmax(n, axis=1)
+    keep_a = np.where(drop == 0, 1, 0)
+    keep_b = np.where(drop == 2, 1, 2)
+    rows = np.arange(len(pos))
+    ia = np.floor(pos[rows, keep_a] / cell).astype(np.int64)
+    ib = np.floor(pos[rows, keep_b] / cell).astype(np.int64)
+    h = (
+        ia.astype(np.uint64) * np.uint64(73856093)
+        ^ ib.astype(np.uint64) * np.uint64(19349663)
+        ^ drop.astype(np.uint64) * np.uint64(83492791)
+        ^ np.asarray(inst, np.uint64) * np.uint64(2654435761)
+    )
+    h = (h ^ (h >> np.uint64(29))) * np.uint64(0xBF58476D1CE4E5B9)
+    u = ((h >> np.uint64(40)).astype(np.float64) + 0.5) / float(1 << 24)  # uniform in (0, 1)
+    depth = sigma * np.sqrt(12.0) * (u - 0.5)
+    cos_inc = np.abs(np.einsum("ij,ij->i", normals, rays[:, 3:]))
+    return (depth / np.maximum(cos_inc, 0.2)).astype(np.float32)
 
 
 def _with_dynamic(rays, dynamic, t_hit, prim, normals, albedo, tri_cls, tri_inst, tri_lm, tri_mat):

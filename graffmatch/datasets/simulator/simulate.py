@@ -33,7 +33,7 @@ from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.geometry.transforms import invert
 
 #: Bumped whenever the world, sensor or trajectory model changes what a seed produces.
-SIMULATOR_VERSION = "1.1"
+SIMULATOR_VERSION = "1.2"
 DEFAULT_N_SCANS = 300
 
 
