@@ -18,10 +18,12 @@ from tests.conftest import _shared_data_dir
 
 #: Floors of GraffMatch's correct-registration recall (rotation < 5 deg and translation < 1 m,
 #: whatever its ``valid`` flag says) on the quick suites (realistic simulator, 3-9 pairs each).
-#: Measured on 2026-11-22 (realistic simulator, 240 quick scans): downtown 4/6, suburban 5/6,
-#: open road 7/9 positive pairs; each floor allows one more failure. The validity flag is being
-#: reworked, so it is not part of the floor.
-RECALL_FLOORS = {"sim-downtown": 0.5, "sim-suburban": 0.6, "sim-openroad": 0.6}
+#: Measured on 2026-11-22 with SIMULATOR_VERSION 1.2 (240 quick scans): downtown 3/9, suburban
+#: 4/6, open road 7/9 positive pairs (1.1 gave 4/6, 5/6, 7/9: the 1.2 worlds, with one street
+#: wall per downtown block side, panel relief and visible shop fronts, are other places with
+#: other pairs); each floor allows one more failure. The validity flag is being reworked, so it
+#: is not part of the floor.
+RECALL_FLOORS = {"sim-downtown": 0.2, "sim-suburban": 0.5, "sim-openroad": 0.6}
 
 
 def correct_registration_recall(results, suite: str, method: str = "GraffMatch") -> tuple[float, int]:
