@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 from graffmatch.datasets.landmark_scene import make_scene_pair
 from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.geometry.transforms import random_transform
+from graffmatch.verification import cell_hash
 from graffmatch.verification import evidence as E
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -159,7 +160,7 @@ def test_dense_table_and_hash_give_the_same_neighbours(monkeypatch):
     P = _cloud(rng, 600, 10.0, 12.5)
     Q = P + rng.normal(scale=0.4, size=P.shape)
     dense = E.CellHash(P, 0.3)
-    monkeypatch.setattr(E, "_DENSE_MAX", 0)
+    monkeypatch.setattr(cell_hash, "_DENSE_MAX", 0)
     hashed = E.CellHash(P, 0.3)
     assert len(dense.dense) > 0 and len(hashed.dense) == 0
     ref = _kd_idx(P, Q, 0.3)
