@@ -202,6 +202,53 @@ def _matvecs_rows(indptr, indices, data, u, rows, Mu, Cu):
         Cu[r] = sc
 
 
+@nb.njit(cache=True, inline="always")
+def _clamped_trial(u, dirv, step, rows, indptr, indices, data, rows_nnz, Mu, Cu, Md, Cd, v, Mv, Cv, clamped):
+    """Trial point ``v = max(u + step * dirv, 0)`` on the active rows with ``M v`` and ``C v``:
+    by linearity from ``M u`` and ``M dirv`` plus a sparse correction for each clamped entry, or
+    one direct mat-vec when the clamped rows hold more than half the non-zeros. Returns
+    (sum of squares of v, sum of v, mat-vecs spent: 0 or 1). Both line searches use it."""
+    n = rows.shape[0]
+    nclamp = 0
+    clamp_nnz = 0
+    for i in range(n):
+        r = rows[i]
+        x = u[r] + step * dirv[r]
+        v[r] = x
+        if x < 0.0:
+            clamped[nclamp] = r
+            nclamp += 1
+            clamp_nnz += indptr[r + 1] - indptr[r]
+    direct = 0
+    if 2 * clamp_nnz > rows_nnz:
+        for j in range(nclamp):
+            v[clamped[j]] = 0.0
+        _matvecs_rows(indptr, indices, data, v, rows, Mv, Cv)
+        direct = 1
+    else:
+        for i in range(n):
+            r = rows[i]
+            Mv[r] = Mu[r] + step * Md[r]
+            Cv[r] = Cu[r] + step * Cd[r]
+        for j in range(nclamp):  # add Q of the clamp correction -v_r e_r (W symmetric)
+            r = clamped[j]
+            x = -v[r]
+            v[r] = 0.0
+            Mv[r] += x
+            Cv[r] += x
+            for k in range(indptr[r], indptr[r + 1]):
+                w = indices[k]
+                Mv[w] += data[k] * x
+                Cv[w] += x
+    nrm = 0.0
+    sv = 0.0
+    for i in range(n):
+        x = v[rows[i]]
+        nrm += x * x
+        sv += x
+    return nrm, sv, direct
+
+
 @nb.njit(cache=True)
 def _ascent(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, beta, alpha, eps):
     """Projected gradient ascent of F at fixed penalty d (one homotopy step), in place on u.
@@ -370,42 +417,9 @@ def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, ma
         nrm = 1.0
         sv = 0.0
         for _ls in range(max_ls):
-            nclamp = 0
-            clamp_nnz = 0
-            for i in range(n):
-                r = rows[i]
-                x = u[r] + t * p[r]
-                v[r] = x
-                if x < 0.0:
-                    clamped[nclamp] = r
-                    nclamp += 1
-                    clamp_nnz += indptr[r + 1] - indptr[r]
-            if 2 * clamp_nnz > rows_nnz:  # many clamps: one direct mat-vec is cheaper
-                for j in range(nclamp):
-                    v[clamped[j]] = 0.0
-                _matvecs_rows(indptr, indices, data, v, rows, Mv, Cv)
-                matvecs += 1
-            else:
-                for i in range(n):
-                    r = rows[i]
-                    Mv[r] = Mu[r] + t * Mp[r]
-                    Cv[r] = Cu[r] + t * Cp[r]
-                for j in range(nclamp):  # add Q of the clamp correction -v_r e_r (W symmetric)
-                    r = clamped[j]
-                    x = -v[r]
-                    v[r] = 0.0
-                    Mv[r] += x
-                    Cv[r] += x
-                    for k in range(indptr[r], indptr[r + 1]):
-                        w = indices[k]
-                        Mv[w] += data[k] * x
-                        Cv[w] += x
-            nrm = 0.0
-            sv = 0.0
-            for i in range(n):
-                x = v[rows[i]]
-                nrm += x * x
-                sv += x
+            nrm, sv, direct = _clamped_trial(u, p, t, rows, indptr, indices, data, rows_nnz,
+                                             Mu, Cu, Mp, Cp, v, Mv, Cv, clamped)
+            matvecs += direct
             if nrm <= 0.0:
                 t *= beta
                 continue
@@ -487,42 +501,9 @@ def _ascent_linear(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, m
         sv = 0.0
         accepted = False
         for _ls in range(max_ls):
-            nclamp = 0
-            clamp_nnz = 0
-            for i in range(n):
-                r = rows[i]
-                x = u[r] + alpha * g[r]
-                v[r] = x
-                if x < 0.0:
-                    clamped[nclamp] = r
-                    nclamp += 1
-                    clamp_nnz += indptr[r + 1] - indptr[r]
-            if 2 * clamp_nnz > rows_nnz:  # many clamps: one direct mat-vec is cheaper
-                for j in range(nclamp):
-                    v[clamped[j]] = 0.0
-                _matvecs_rows(indptr, indices, data, v, rows, Mv, Cv)
-                matvecs += 1
-            else:
-                for i in range(n):
-                    r = rows[i]
-                    Mv[r] = Mu[r] + alpha * Mg[r]
-                    Cv[r] = Cu[r] + alpha * Cg[r]
-                for j in range(nclamp):  # add Q of the clamp correction -v_r e_r
-                    r = clamped[j]
-                    x = -v[r]
-                    v[r] = 0.0
-                    Mv[r] += x
-                    Cv[r] += x
-                    for k in range(indptr[r], indptr[r + 1]):
-                        w = indices[k]
-                        Mv[w] += data[k] * x
-                        Cv[w] += x
-            nrm = 0.0
-            sv = 0.0
-            for i in range(n):
-                x = v[rows[i]]
-                nrm += x * x
-                sv += x
+            nrm, sv, direct = _clamped_trial(u, g, alpha, rows, indptr, indices, data, rows_nnz,
+                                             Mu, Cu, Mg, Cg, v, Mv, Cv, clamped)
+            matvecs += direct
             if nrm <= 0.0:
                 alpha *= beta
                 continue
