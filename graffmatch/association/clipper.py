@@ -133,7 +133,7 @@ class ClipperSolution:
         )
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, fastmath=True)
 def _matvecs(indptr, indices, data, u, Mu, Cu):
     """Mu = (W + I) u and Cu = (A + I) u (A: the edge pattern) in one row-wise pass."""
     m = u.shape[0]
@@ -186,28 +186,30 @@ def _increment_d(u, Mu, Cu, eps, use_mean=False):
     return best
 
 
-@nb.njit(cache=True, inline="always")
-def _matvecs_rows(indptr, indices, data, u, rows, Mu, Cu):
-    """:func:`_matvecs` on the listed rows only, for a u that is zero outside them: the zero
-    columns add exact zeros, so the values equal those on the induced subgraph."""
+@nb.njit(cache=True, fastmath=True)
+def _qmatvec_rows(indptr, indices, data, x, rows, d, Qx):
+    """Qx = (W + d A + (1 + d) I) x on the listed rows, for an x that is zero outside them (the
+    zero columns add exact zeros, so the values equal those on the induced subgraph).
+
+    The ascent only ever needs M x - d (sum x - C x) = Qx - d sum x (M = W + I, C = A + I), so
+    one accumulator per row with the weight w + d replaces the two sums of W x and A x: half
+    the additions, and fastmath lets the row's sum be reassociated (vectorised)."""
+    dd = 1.0 + d
     for i in range(rows.shape[0]):
         r = rows[i]
-        sw = u[r]
-        sc = u[r]
+        s = 0.0
         for k in range(indptr[r], indptr[r + 1]):
-            x = u[indices[k]]
-            sw += data[k] * x
-            sc += x
-        Mu[r] = sw
-        Cu[r] = sc
+            s += (data[k] + d) * x[indices[k]]
+        Qx[r] = s + dd * x[r]
 
 
-@nb.njit(cache=True, inline="always")
-def _clamped_trial(u, dirv, step, rows, indptr, indices, data, rows_nnz, Mu, Cu, Md, Cd, v, Mv, Cv, clamped):
-    """Trial point ``v = max(u + step * dirv, 0)`` on the active rows with ``M v`` and ``C v``:
-    by linearity from ``M u`` and ``M dirv`` plus a sparse correction for each clamped entry, or
-    one direct mat-vec when the clamped rows hold more than half the non-zeros. Returns
-    (sum of squares of v, sum of v, mat-vecs spent: 0 or 1). Both line searches use it."""
+@nb.njit(cache=True)
+def _clamped_trial(u, dirv, step, rows, indptr, indices, data, rows_nnz, d, Qu, Qd, v, Qv, clamped):
+    """Trial point ``v = max(u + step * dirv, 0)`` on the active rows with ``Q v`` (see
+    :func:`_qmatvec_rows`): by linearity from ``Q u`` and ``Q dirv`` plus a sparse correction
+    for each clamped entry, or one direct mat-vec when the clamped rows hold more than half the
+    non-zeros. Returns (sum of squares of v, sum of v, mat-vecs spent: 0 or 1). Both line
+    searches use it."""
     n = rows.shape[0]
     nclamp = 0
     clamp_nnz = 0
@@ -223,23 +225,19 @@ def _clamped_trial(u, dirv, step, rows, indptr, indices, data, rows_nnz, Mu, Cu,
     if 2 * clamp_nnz > rows_nnz:
         for j in range(nclamp):
             v[clamped[j]] = 0.0
-        _matvecs_rows(indptr, indices, data, v, rows, Mv, Cv)
+        _qmatvec_rows(indptr, indices, data, v, rows, d, Qv)
         direct = 1
     else:
         for i in range(n):
             r = rows[i]
-            Mv[r] = Mu[r] + step * Md[r]
-            Cv[r] = Cu[r] + step * Cd[r]
+            Qv[r] = Qu[r] + step * Qd[r]
         for j in range(nclamp):  # add Q of the clamp correction -v_r e_r (W symmetric)
             r = clamped[j]
             x = -v[r]
             v[r] = 0.0
-            Mv[r] += x
-            Cv[r] += x
+            Qv[r] += (1.0 + d) * x
             for k in range(indptr[r], indptr[r + 1]):
-                w = indices[k]
-                Mv[w] += data[k] * x
-                Cv[w] += x
+                Qv[indices[k]] += (data[k] + d) * x
     nrm = 0.0
     sv = 0.0
     for i in range(n):
@@ -256,17 +254,16 @@ def _ascent(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, 
     Only the coordinates in ``rows`` (ascending) move; u must be zero elsewhere and stays so.
     ``rows`` = all rows of an extracted subgraph, or the active rows of the whole graph (then
     no copy of a large subgraph is needed; the arithmetic is the same, in the same order).
+    The gradient M u - d (sum u - C u) is Q u - d sum u (:func:`_qmatvec_rows`).
     Returns (inner iterations, mat-vecs)."""
     m = u.shape[0]
     n = rows.shape[0]
-    Mu = np.zeros(m)
-    Cu = np.zeros(m)
+    Qu = np.zeros(m)
     unew = np.zeros(m)
     grad = np.zeros(m)
     gradnew = np.zeros(m)
-    Munew = np.zeros(m)
-    Cunew = np.zeros(m)
-    _matvecs_rows(indptr, indices, data, u, rows, Mu, Cu)
+    Qunew = np.zeros(m)
+    _qmatvec_rows(indptr, indices, data, u, rows, d, Qu)
     matvecs = 1
     s = 0.0
     for i in range(n):
@@ -274,7 +271,7 @@ def _ascent(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, 
     F = 0.0
     for i in range(n):
         r = rows[i]
-        grad[r] = Mu[r] - d * (s - Cu[r])
+        grad[r] = Qu[r] - d * s
         F += u[r] * grad[r]
     inner = 0
     for _ in range(max_inner):
@@ -297,7 +294,7 @@ def _ascent(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, 
             inv = 1.0 / np.sqrt(nrm)
             for i in range(n):
                 unew[rows[i]] *= inv
-            _matvecs_rows(indptr, indices, data, unew, rows, Munew, Cunew)
+            _qmatvec_rows(indptr, indices, data, unew, rows, d, Qunew)
             matvecs += 1
             sn = 0.0
             for i in range(n):
@@ -305,7 +302,7 @@ def _ascent(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, 
             Fnew = 0.0
             for i in range(n):
                 r = rows[i]
-                gradnew[r] = Munew[r] - d * (sn - Cunew[r])
+                gradnew[r] = Qunew[r] - d * sn
                 Fnew += unew[r] * gradnew[r]
             deltaF = Fnew - F
             if deltaF < -eps:
@@ -343,19 +340,16 @@ def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, ma
     ``beta`` (no new mat-vec). Same stopping rules, same fixed points (KKT points at this d)."""
     m = u.shape[0]
     n = rows.shape[0]
-    Mu = np.zeros(m)
-    Cu = np.zeros(m)
+    Qu = np.zeros(m)
     p = np.zeros(m)
-    Mp = np.zeros(m)
-    Cp = np.zeros(m)
+    Qp = np.zeros(m)
     v = np.zeros(m)
-    Mv = np.zeros(m)
-    Cv = np.zeros(m)
+    Qv = np.zeros(m)
     clamped = np.empty(n, dtype=np.int64)
     rows_nnz = 0
     for i in range(n):
         rows_nnz += indptr[rows[i] + 1] - indptr[rows[i]]
-    _matvecs_rows(indptr, indices, data, u, rows, Mu, Cu)
+    _qmatvec_rows(indptr, indices, data, u, rows, d, Qu)
     matvecs = 1
     s = 0.0
     F = 0.0
@@ -363,17 +357,17 @@ def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, ma
         s += u[rows[i]]
     for i in range(n):
         r = rows[i]
-        F += u[r] * (Mu[r] - d * (s - Cu[r]))
+        F += u[r] * (Qu[r] - d * s)
     inner = 0
     for _ in range(max_inner):
         inner += 1
         for i in range(n):
             r = rows[i]
-            x = Mu[r] - d * (s - Cu[r]) - F * u[r]
+            x = Qu[r] - d * s - F * u[r]
             if u[r] <= 0.0 and x < 0.0:
                 x = 0.0
             p[r] = x
-        _matvecs_rows(indptr, indices, data, p, rows, Mp, Cp)
+        _qmatvec_rows(indptr, indices, data, p, rows, d, Qp)
         matvecs += 1
         sp_ = 0.0
         for i in range(n):
@@ -384,8 +378,8 @@ def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, ma
         f = 0.0
         for i in range(n):
             r = rows[i]
-            b += p[r] * (Mu[r] - d * (s - Cu[r]))
-            c += p[r] * (Mp[r] - d * (sp_ - Cp[r]))
+            b += p[r] * (Qu[r] - d * s)
+            c += p[r] * (Qp[r] - d * sp_)
             e += u[r] * p[r]
             f += p[r] * p[r]
         if f <= 0.0 or b <= 0.0:
@@ -417,8 +411,8 @@ def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, ma
         nrm = 1.0
         sv = 0.0
         for _ls in range(max_ls):
-            nrm, sv, direct = _clamped_trial(u, p, t, rows, indptr, indices, data, rows_nnz,
-                                             Mu, Cu, Mp, Cp, v, Mv, Cv, clamped)
+            nrm, sv, direct = _clamped_trial(u, p, t, rows, indptr, indices, data, rows_nnz, d,
+                                             Qu, Qp, v, Qv, clamped)
             matvecs += direct
             if nrm <= 0.0:
                 t *= beta
@@ -426,7 +420,7 @@ def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, ma
             Fnew = 0.0
             for i in range(n):
                 r = rows[i]
-                Fnew += v[r] * (Mv[r] - d * (sv - Cv[r]))
+                Fnew += v[r] * (Qv[r] - d * sv)
             Fnew /= nrm
             if Fnew - F < -eps:
                 t *= beta
@@ -443,8 +437,7 @@ def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, ma
             diff = x - u[r]
             du += diff * diff
             u[r] = x
-            Mu[r] = Mv[r] * inv
-            Cu[r] = Cv[r] * inv
+            Qu[r] = Qv[r] * inv
         s = sv * inv
         deltaF = Fnew - F
         F = Fnew
@@ -463,19 +456,16 @@ def _ascent_linear(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, m
     :func:`_ascent`'s up to rounding."""
     m = u.shape[0]
     n = rows.shape[0]
-    Mu = np.zeros(m)
-    Cu = np.zeros(m)
+    Qu = np.zeros(m)
     g = np.zeros(m)
-    Mg = np.zeros(m)
-    Cg = np.zeros(m)
+    Qg = np.zeros(m)
     v = np.zeros(m)
-    Mv = np.zeros(m)
-    Cv = np.zeros(m)
+    Qv = np.zeros(m)
     clamped = np.empty(n, dtype=np.int64)
     rows_nnz = 0
     for i in range(n):
         rows_nnz += indptr[rows[i] + 1] - indptr[rows[i]]
-    _matvecs_rows(indptr, indices, data, u, rows, Mu, Cu)
+    _qmatvec_rows(indptr, indices, data, u, rows, d, Qu)
     matvecs = 1
     s = 0.0
     for i in range(n):
@@ -483,17 +473,17 @@ def _ascent_linear(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, m
     F = 0.0
     for i in range(n):
         r = rows[i]
-        F += u[r] * (Mu[r] - d * (s - Cu[r]))
+        F += u[r] * (Qu[r] - d * s)
     inner = 0
     for _ in range(max_inner):
         inner += 1
         for i in range(n):
             r = rows[i]
-            x = Mu[r] - d * (s - Cu[r])
+            x = Qu[r] - d * s
             if u[r] <= 0.0 and x < 0.0:
                 x = 0.0  # clamped at every alpha > 0: max(0, 0 + alpha x) = 0
             g[r] = x
-        _matvecs_rows(indptr, indices, data, g, rows, Mg, Cg)
+        _qmatvec_rows(indptr, indices, data, g, rows, d, Qg)
         matvecs += 1
         Fnew = F
         deltaF = 0.0
@@ -501,8 +491,8 @@ def _ascent_linear(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, m
         sv = 0.0
         accepted = False
         for _ls in range(max_ls):
-            nrm, sv, direct = _clamped_trial(u, g, alpha, rows, indptr, indices, data, rows_nnz,
-                                             Mu, Cu, Mg, Cg, v, Mv, Cv, clamped)
+            nrm, sv, direct = _clamped_trial(u, g, alpha, rows, indptr, indices, data, rows_nnz, d,
+                                             Qu, Qg, v, Qv, clamped)
             matvecs += direct
             if nrm <= 0.0:
                 alpha *= beta
@@ -511,7 +501,7 @@ def _ascent_linear(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, m
             Fnew = 0.0
             for i in range(n):
                 r = rows[i]
-                Fnew += v[r] * (Mv[r] - d * (sv - Cv[r]))
+                Fnew += v[r] * (Qv[r] - d * sv)
             Fnew /= nrm * nrm
             deltaF = Fnew - F
             if deltaF < -eps:
@@ -531,8 +521,7 @@ def _ascent_linear(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, m
             diff = x - u[r]
             du += diff * diff
             u[r] = x
-            Mu[r] = Mv[r] * inv
-            Cu[r] = Cv[r] * inv
+            Qu[r] = Qv[r] * inv
         s = sv * inv
         F = Fnew
         if np.sqrt(du) < tol_u or abs(deltaF) < tol_F:
