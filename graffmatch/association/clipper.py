@@ -32,6 +32,12 @@ Rounding = Literal["nonzero", "dsd_heu", "clique"]
 # Largest active-set subgraph the homotopy copies out (bound: the active rows' non-zeros x 8 B);
 # above it, the ascent runs on the active rows of the whole graph (same arithmetic, no copy).
 _MAX_SUBGRAPH_BYTES = 64 * 2**20
+# Active sets whose n x n float32 block fits in this many bytes run on a dense block when its
+# n^2 entries cost less than the CSR rows' non-zeros: a dense entry costs ~0.14 of a CSR
+# non-zero (W1 graph, one core: 0.086 ms for 708^2 entries against 0.19 ms for 148k non-zeros).
+_MAX_DENSE_BYTES = 16 * 2**20
+_DENSE_ENTRY_COST = 0.2
+_NO_DENSE = np.zeros((0, 0), dtype=np.float32)
 
 
 class ClipperConfig(BaseModel):
@@ -187,13 +193,26 @@ def _increment_d(u, Mu, Cu, eps, use_mean=False):
 
 
 @nb.njit(cache=True, fastmath=True)
-def _qmatvec_rows(indptr, indices, data, x, rows, d, Qx):
+def _qmatvec_rows(indptr, indices, data, dense, x, rows, d, Qx):
     """Qx = (W + d A + (1 + d) I) x on the listed rows, for an x that is zero outside them (the
     zero columns add exact zeros, so the values equal those on the induced subgraph).
 
     The ascent only ever needs M x - d (sum x - C x) = Qx - d sum x (M = W + I, C = A + I), so
     one accumulator per row with the weight w + d replaces the two sums of W x and A x: half
-    the additions, and fastmath lets the row's sum be reassociated (vectorised)."""
+    the additions, and fastmath lets the row's sum be reassociated (vectorised).
+
+    With a non-empty ``dense`` (the active subgraph as an n x n matrix, see :func:`_dense_block`;
+    rows = 0..n-1) the product is ``dense @ x`` = M x - d (sum x - C x) itself: contiguous rows
+    instead of gathers, float32 entries summed in float64."""
+    if dense.shape[0]:
+        n = dense.shape[0]
+        for r in range(n):
+            row = dense[r]
+            s = 0.0
+            for c in range(n):
+                s += row[c] * x[c]
+            Qx[r] = s
+        return
     dd = 1.0 + d
     for i in range(rows.shape[0]):
         r = rows[i]
@@ -204,7 +223,29 @@ def _qmatvec_rows(indptr, indices, data, x, rows, d, Qx):
 
 
 @nb.njit(cache=True)
-def _clamped_trial(u, dirv, step, rows, indptr, indices, data, rows_nnz, d, Qu, Qd, v, Qv, clamped):
+def _dense_block(indptr, indices, data, rows, d):
+    """The quadratic form of F on the active ``rows`` as a dense float32 matrix: w on edges,
+    -d on non-edges, 1 on the diagonal (M - d Cbar). No cancellation: the penalty is stored
+    per entry instead of as d (A + I) x - d sum x."""
+    n = rows.shape[0]
+    m = indptr.shape[0] - 1
+    pos = np.full(m, -1, dtype=np.int64)
+    for i in range(n):
+        pos[rows[i]] = i
+    out = np.full((n, n), np.float32(-d), dtype=np.float32)
+    for i in range(n):
+        r = rows[i]
+        row = out[i]
+        row[i] = 1.0
+        for k in range(indptr[r], indptr[r + 1]):
+            j = pos[indices[k]]
+            if j >= 0:
+                row[j] = data[k]
+    return out
+
+
+@nb.njit(cache=True)
+def _clamped_trial(u, dirv, step, rows, indptr, indices, data, dense, rows_nnz, d, Qu, Qd, v, Qv, clamped):
     """Trial point ``v = max(u + step * dirv, 0)`` on the active rows with ``Q v`` (see
     :func:`_qmatvec_rows`): by linearity from ``Q u`` and ``Q dirv`` plus a sparse correction
     for each clamped entry, or one direct mat-vec when the clamped rows hold more than half the
@@ -220,12 +261,12 @@ def _clamped_trial(u, dirv, step, rows, indptr, indices, data, rows_nnz, d, Qu, 
         if x < 0.0:
             clamped[nclamp] = r
             nclamp += 1
-            clamp_nnz += indptr[r + 1] - indptr[r]
+            clamp_nnz += n if dense.shape[0] else indptr[r + 1] - indptr[r]
     direct = 0
     if 2 * clamp_nnz > rows_nnz:
         for j in range(nclamp):
             v[clamped[j]] = 0.0
-        _qmatvec_rows(indptr, indices, data, v, rows, d, Qv)
+        _qmatvec_rows(indptr, indices, data, dense, v, rows, d, Qv)
         direct = 1
     else:
         for i in range(n):
@@ -235,6 +276,11 @@ def _clamped_trial(u, dirv, step, rows, indptr, indices, data, rows_nnz, d, Qu, 
             r = clamped[j]
             x = -v[r]
             v[r] = 0.0
+            if dense.shape[0]:
+                row = dense[r]  # symmetric: column r = row r
+                for c in range(n):
+                    Qv[c] += row[c] * x
+                continue
             Qv[r] += (1.0 + d) * x
             for k in range(indptr[r], indptr[r + 1]):
                 Qv[indices[k]] += (data[k] + d) * x
@@ -248,7 +294,7 @@ def _clamped_trial(u, dirv, step, rows, indptr, indices, data, rows_nnz, d, Qu, 
 
 
 @nb.njit(cache=True)
-def _ascent(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, beta, alpha, eps):
+def _ascent(indptr, indices, data, dense, u, rows, d, tol_u, tol_F, max_inner, max_ls, beta, alpha, eps):
     """Projected gradient ascent of F at fixed penalty d (one homotopy step), in place on u.
 
     Only the coordinates in ``rows`` (ascending) move; u must be zero elsewhere and stays so.
@@ -258,12 +304,13 @@ def _ascent(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, 
     Returns (inner iterations, mat-vecs)."""
     m = u.shape[0]
     n = rows.shape[0]
+    ds = 0.0 if dense.shape[0] else d  # the dense block holds the -d sum x term itself
     Qu = np.zeros(m)
     unew = np.zeros(m)
     grad = np.zeros(m)
     gradnew = np.zeros(m)
     Qunew = np.zeros(m)
-    _qmatvec_rows(indptr, indices, data, u, rows, d, Qu)
+    _qmatvec_rows(indptr, indices, data, dense, u, rows, d, Qu)
     matvecs = 1
     s = 0.0
     for i in range(n):
@@ -271,7 +318,7 @@ def _ascent(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, 
     F = 0.0
     for i in range(n):
         r = rows[i]
-        grad[r] = Qu[r] - d * s
+        grad[r] = Qu[r] - ds * s
         F += u[r] * grad[r]
     inner = 0
     for _ in range(max_inner):
@@ -294,7 +341,7 @@ def _ascent(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, 
             inv = 1.0 / np.sqrt(nrm)
             for i in range(n):
                 unew[rows[i]] *= inv
-            _qmatvec_rows(indptr, indices, data, unew, rows, d, Qunew)
+            _qmatvec_rows(indptr, indices, data, dense, unew, rows, d, Qunew)
             matvecs += 1
             sn = 0.0
             for i in range(n):
@@ -302,7 +349,7 @@ def _ascent(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, 
             Fnew = 0.0
             for i in range(n):
                 r = rows[i]
-                gradnew[r] = Qunew[r] - d * sn
+                gradnew[r] = Qunew[r] - ds * sn
                 Fnew += unew[r] * gradnew[r]
             deltaF = Fnew - F
             if deltaF < -eps:
@@ -328,7 +375,7 @@ def _ascent(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, 
 
 
 @nb.njit(cache=True)
-def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, beta, eps):
+def _ascent_exact(indptr, indices, data, dense, u, rows, d, tol_u, tol_F, max_inner, max_ls, beta, eps):
     """:func:`_ascent` with an exact line search: one mat-vec per step instead of one per trial.
 
     F is a Rayleigh quotient u^T Q u / u^T u (Q = M - d Cbar), so along the ray u + t p
@@ -340,16 +387,17 @@ def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, ma
     ``beta`` (no new mat-vec). Same stopping rules, same fixed points (KKT points at this d)."""
     m = u.shape[0]
     n = rows.shape[0]
+    ds = 0.0 if dense.shape[0] else d  # the dense block holds the -d sum x term itself
     Qu = np.zeros(m)
     p = np.zeros(m)
     Qp = np.zeros(m)
     v = np.zeros(m)
     Qv = np.zeros(m)
     clamped = np.empty(n, dtype=np.int64)
-    rows_nnz = 0
-    for i in range(n):
+    rows_nnz = n * n if dense.shape[0] else 0
+    for i in range(0 if dense.shape[0] else n):
         rows_nnz += indptr[rows[i] + 1] - indptr[rows[i]]
-    _qmatvec_rows(indptr, indices, data, u, rows, d, Qu)
+    _qmatvec_rows(indptr, indices, data, dense, u, rows, d, Qu)
     matvecs = 1
     s = 0.0
     F = 0.0
@@ -357,17 +405,17 @@ def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, ma
         s += u[rows[i]]
     for i in range(n):
         r = rows[i]
-        F += u[r] * (Qu[r] - d * s)
+        F += u[r] * (Qu[r] - ds * s)
     inner = 0
     for _ in range(max_inner):
         inner += 1
         for i in range(n):
             r = rows[i]
-            x = Qu[r] - d * s - F * u[r]
+            x = Qu[r] - ds * s - F * u[r]
             if u[r] <= 0.0 and x < 0.0:
                 x = 0.0
             p[r] = x
-        _qmatvec_rows(indptr, indices, data, p, rows, d, Qp)
+        _qmatvec_rows(indptr, indices, data, dense, p, rows, d, Qp)
         matvecs += 1
         sp_ = 0.0
         for i in range(n):
@@ -378,8 +426,8 @@ def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, ma
         f = 0.0
         for i in range(n):
             r = rows[i]
-            b += p[r] * (Qu[r] - d * s)
-            c += p[r] * (Qp[r] - d * sp_)
+            b += p[r] * (Qu[r] - ds * s)
+            c += p[r] * (Qp[r] - ds * sp_)
             e += u[r] * p[r]
             f += p[r] * p[r]
         if f <= 0.0 or b <= 0.0:
@@ -411,7 +459,7 @@ def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, ma
         nrm = 1.0
         sv = 0.0
         for _ls in range(max_ls):
-            nrm, sv, direct = _clamped_trial(u, p, t, rows, indptr, indices, data, rows_nnz, d,
+            nrm, sv, direct = _clamped_trial(u, p, t, rows, indptr, indices, data, dense, rows_nnz, d,
                                              Qu, Qp, v, Qv, clamped)
             matvecs += direct
             if nrm <= 0.0:
@@ -420,7 +468,7 @@ def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, ma
             Fnew = 0.0
             for i in range(n):
                 r = rows[i]
-                Fnew += v[r] * (Qv[r] - d * sv)
+                Fnew += v[r] * (Qv[r] - ds * sv)
             Fnew /= nrm
             if Fnew - F < -eps:
                 t *= beta
@@ -447,7 +495,7 @@ def _ascent_exact(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, ma
 
 
 @nb.njit(cache=True)
-def _ascent_linear(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, max_ls, beta, alpha, eps):
+def _ascent_linear(indptr, indices, data, dense, u, rows, d, tol_u, tol_F, max_inner, max_ls, beta, alpha, eps):
     """:func:`_ascent`'s iterates (the same backtracking, the same steps) with one mat-vec per step
     instead of one per trial: Q is linear, so Q (u + alpha g) = Q u + alpha Q g for every trial
     alpha, from one mat-vec Q g. Coordinates that the orthant projection clamps for any alpha
@@ -456,16 +504,17 @@ def _ascent_linear(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, m
     :func:`_ascent`'s up to rounding."""
     m = u.shape[0]
     n = rows.shape[0]
+    ds = 0.0 if dense.shape[0] else d  # the dense block holds the -d sum x term itself
     Qu = np.zeros(m)
     g = np.zeros(m)
     Qg = np.zeros(m)
     v = np.zeros(m)
     Qv = np.zeros(m)
     clamped = np.empty(n, dtype=np.int64)
-    rows_nnz = 0
-    for i in range(n):
+    rows_nnz = n * n if dense.shape[0] else 0
+    for i in range(0 if dense.shape[0] else n):
         rows_nnz += indptr[rows[i] + 1] - indptr[rows[i]]
-    _qmatvec_rows(indptr, indices, data, u, rows, d, Qu)
+    _qmatvec_rows(indptr, indices, data, dense, u, rows, d, Qu)
     matvecs = 1
     s = 0.0
     for i in range(n):
@@ -473,17 +522,17 @@ def _ascent_linear(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, m
     F = 0.0
     for i in range(n):
         r = rows[i]
-        F += u[r] * (Qu[r] - d * s)
+        F += u[r] * (Qu[r] - ds * s)
     inner = 0
     for _ in range(max_inner):
         inner += 1
         for i in range(n):
             r = rows[i]
-            x = Qu[r] - d * s
+            x = Qu[r] - ds * s
             if u[r] <= 0.0 and x < 0.0:
                 x = 0.0  # clamped at every alpha > 0: max(0, 0 + alpha x) = 0
             g[r] = x
-        _qmatvec_rows(indptr, indices, data, g, rows, d, Qg)
+        _qmatvec_rows(indptr, indices, data, dense, g, rows, d, Qg)
         matvecs += 1
         Fnew = F
         deltaF = 0.0
@@ -491,7 +540,7 @@ def _ascent_linear(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, m
         sv = 0.0
         accepted = False
         for _ls in range(max_ls):
-            nrm, sv, direct = _clamped_trial(u, g, alpha, rows, indptr, indices, data, rows_nnz, d,
+            nrm, sv, direct = _clamped_trial(u, g, alpha, rows, indptr, indices, data, dense, rows_nnz, d,
                                              Qu, Qg, v, Qv, clamped)
             matvecs += direct
             if nrm <= 0.0:
@@ -501,7 +550,7 @@ def _ascent_linear(indptr, indices, data, u, rows, d, tol_u, tol_F, max_inner, m
             Fnew = 0.0
             for i in range(n):
                 r = rows[i]
-                Fnew += v[r] * (Qv[r] - d * sv)
+                Fnew += v[r] * (Qv[r] - ds * sv)
             Fnew /= nrm * nrm
             deltaF = Fnew - F
             if deltaF < -eps:
@@ -558,7 +607,15 @@ def _homotopy(indptr, indices, data, u0, cfg: ClipperConfig) -> tuple[np.ndarray
     row_nnz = np.diff(indptr)
     for outer in range(1, cfg.max_outer_iterations + 1):  # noqa: B007 (returned count)
         idx = np.flatnonzero(active)
-        if idx.size * 2 > m or row_nnz[idx].sum() * 8 > _MAX_SUBGRAPH_BYTES:
+        n = idx.size
+        dense = _NO_DENSE
+        if n * n * 4 <= _MAX_DENSE_BYTES and n * n * _DENSE_ENTRY_COST < row_nnz[idx].sum():
+            # A small, dense active set: its block as a dense matrix (contiguous rows, no
+            # gathers) is cheaper to multiply than its rows in CSR.
+            dense = _dense_block(indptr, indices, data, idx, d)
+            uk = np.ascontiguousarray(u[idx])
+            rows = np.arange(n)
+        elif n * 2 > m or row_nnz[idx].sum() * 8 > _MAX_SUBGRAPH_BYTES:
             # A large active set: run on its rows of the whole graph instead of copying an
             # induced subgraph of a similar size (the copy was +90 MB at m = 11.5k).
             sub, sub_ids = (indptr, indices, data), np.arange(m)
@@ -581,17 +638,17 @@ def _homotopy(indptr, indices, data, u0, cfg: ClipperConfig) -> tuple[np.ndarray
         uk[rows] /= np.linalg.norm(uk[rows])
         if cfg.line_search == "exact":
             inner, nmv = _ascent_exact(
-                sub[0], sub[1], sub[2], uk, rows, d, cfg.tol_u, cfg.tol_F, cfg.max_inner_iterations,
+                sub[0], sub[1], sub[2], dense, uk, rows, d, cfg.tol_u, cfg.tol_F, cfg.max_inner_iterations,
                 cfg.max_line_search_iterations, cfg.beta, cfg.eps,
             )
         elif cfg.line_search == "backtracking_linear":
             inner, nmv = _ascent_linear(
-                sub[0], sub[1], sub[2], uk, rows, d, cfg.tol_u, cfg.tol_F, cfg.max_inner_iterations,
+                sub[0], sub[1], sub[2], dense, uk, rows, d, cfg.tol_u, cfg.tol_F, cfg.max_inner_iterations,
                 cfg.max_line_search_iterations, cfg.beta, cfg.alpha, cfg.eps,
             )
         else:
             inner, nmv = _ascent(
-                sub[0], sub[1], sub[2], uk, rows, d, cfg.tol_u, cfg.tol_F, cfg.max_inner_iterations,
+                sub[0], sub[1], sub[2], dense, uk, rows, d, cfg.tol_u, cfg.tol_F, cfg.max_inner_iterations,
                 cfg.max_line_search_iterations, cfg.beta, cfg.alpha, cfg.eps,
             )
         inner_total += inner
