@@ -155,9 +155,10 @@ def _exp_nonpositive(x, out, n, squarings):
                 1.0 / 3628800 + y * (1.0 / 39916800 + y * (1.0 / 479001600 + y * (
                     1.0 / 6227020800 + y * (1.0 / 87178291200 + y * (1.0 / 1307674368000 + y * (
                         1.0 / 20922789888000))))))))))))))))
-        for _ in range(squarings):
-            p = p * p
         out[i] = p
+    for _ in range(squarings):  # a loop of its own: the polynomial loop stays vectorisable
+        for i in range(n):
+            out[i] = out[i] * out[i]
 
 
 def _squarings(epsilon: float, inv_two_sigma2: float) -> int:
