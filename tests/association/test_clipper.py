@@ -311,7 +311,7 @@ def test_exact_line_search_halves_matvecs_on_a_street_scene_graph(monkeypatch):
 
 def test_exact_line_search_ascends_monotonically():
     """Each accepted step of the exact search may not lower F (the clamping is backtracked)."""
-    from graffmatch.association.clipper import _ascent_exact
+    from graffmatch.association.clipper import _NO_DENSE, _ascent_exact
 
     rng = np.random.default_rng(4)
     W = planted_graph(200, 15, 0.3, rng)
@@ -322,7 +322,7 @@ def test_exact_line_search_ascends_monotonically():
     Q = (W + sp.eye(200)).toarray() - d * (np.ones((200, 200)) - ((W != 0).toarray() + np.eye(200)))
     values = [float(u @ Q @ u)]
     for _ in range(15):  # one step at a time
-        _ascent_exact(W.indptr, W.indices, W.data, u, rows, d, 0.0, 0.0, 1, 99, 0.25, 1e-9)
+        _ascent_exact(W.indptr, W.indices, W.data, _NO_DENSE, u, rows, d, 0.0, 0.0, 1, 99, 0.25, 1e-9)
         assert np.isclose(np.linalg.norm(u), 1.0) and np.all(u >= 0.0)
         values.append(float(u @ Q @ u))
     assert np.all(np.diff(values) >= -1e-9)
