@@ -1,7 +1,7 @@
 """A cheap geometric pre-screen of loop candidates, run before the verified matcher.
 
 The verified matcher costs tens of milliseconds a candidate; most retrieved candidates are not
-the same place. This check costs well under a millisecond a candidate: it levels each landmark
+the same place. This check costs a fraction of a millisecond a candidate: it levels each landmark
 map once (``up`` from the pole directions, else the ground normal), reduces it to a bird's-eye
 view of pole positions and facade lines (:class:`QuickIndex`, computed once per scan and kept in
 the database), and registers two views by voting:
@@ -13,7 +13,9 @@ the database), and registers two views by voting:
   *inliers*: query poles within ``inlier_m`` of a candidate pole plus query facades within
   ``inlier_deg`` and ``inlier_m`` of a candidate facade.
 
-The score is that inlier count. It is rotation-invariant (every hypothesis is built from
+The score is that inlier count. :func:`quick_check_many` scores all candidates of a query in
+one compiled pass (:mod:`.quick_kernel`); :func:`quick_check_numpy` is the readable NumPy
+version it is tested against. The score is rotation-invariant (every hypothesis is built from
 invariants), so a reverse-direction revisit scores like a same-direction one. A gate on it is
 only a pre-screen: the candidates that pass are still verified by the matcher; the gate's
 threshold is chosen so that (measured, ``bench/bench_loops_speed.py``) no candidate the matcher
@@ -22,13 +24,15 @@ accepts is screened out.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
+from graffmatch.loops.quick_kernel import pack, quick_scores
 
 Array = NDArray[np.float64]
 
@@ -65,6 +69,11 @@ class QuickIndex:
     pp: Array  # (P, 4): i, j, distance, direction angle of poles i->j
     pf: Array  # (Q, 3): pole i, facade k, unsigned distance
     ff: Array  # (F, 5): facade k, facade l, signed angle l - k mod pi, corner x, y
+    packed: Array = field(init=False, repr=False)  # the same, flat, with sorted invariants (quick_kernel)
+
+    def __post_init__(self) -> None:
+        self.packed = pack(self.poles, self.facade_angle, self.facade_normal, self.facade_offset,
+                           self.facade_anchor, self.pp, self.pf, self.ff)
 
     @property
     def size(self) -> int:
@@ -241,8 +250,26 @@ def _inliers(q: QuickIndex, c: QuickIndex, th: Array, t: Array, cfg: QuickCheckC
 _DEFAULT = QuickCheckConfig()
 
 
+def quick_check_many(
+    q: QuickIndex, candidates: Sequence[QuickIndex], config: QuickCheckConfig | None = None
+) -> tuple[NDArray[np.int64], Array]:
+    """(inlier counts (C,), (yaw, tx, ty) of each best hypothesis (C, 3)) of ``q`` against every
+    candidate, in one compiled pass."""
+    cfg = config or _DEFAULT
+    return quick_scores(
+        q.packed, [c.packed for c in candidates], cfg.pair_tol_m, cfg.pair_tol_deg, cfg.yaw_bin_deg, cfg.t_bin_m,
+        cfg.top_bins, cfg.inlier_m, cfg.inlier_deg, cfg.facade_anchor_m,
+    )
+
+
 def quick_check(q: QuickIndex, c: QuickIndex, config: QuickCheckConfig | None = None) -> tuple[int, Array]:
     """(inlier count, (yaw, tx, ty) of the best hypothesis) of query ``q`` against candidate ``c``."""
+    score, est = quick_check_many(q, [c], config)
+    return int(score[0]), est[0]
+
+
+def quick_check_numpy(q: QuickIndex, c: QuickIndex, config: QuickCheckConfig | None = None) -> tuple[int, Array]:
+    """:func:`quick_check` in NumPy (the reference of the compiled kernel; same result)."""
     cfg = config or _DEFAULT
     th, t = _hypotheses(q, c, cfg)
     if len(th) == 0:

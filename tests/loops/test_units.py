@@ -212,3 +212,38 @@ def test_quick_gate_and_early_stop_keep_the_accepted_candidate():
     recs_all = verify_query(0, cands, maps.__getitem__, None, det.matcher, off)
     assert all(r["verified"] for r in recs_all)
     assert max(recs_all, key=lambda r: r["confidence"])["match"] == 3
+
+
+def test_batched_quick_check_equals_the_numpy_reference():
+    """The compiled batch pass (quick_check_many) gives the NumPy reference's score and estimate
+    for every candidate: moved copies, unrelated places, facade-only, pole-only and empty maps,
+    and a Manhattan layout (all corners at 90 deg: thousands of tied corner votes)."""
+    from graffmatch.loops.quickcheck import quick_check_many, quick_check_numpy, quick_index
+
+    def manhattan(seed: int) -> LandmarkSet:
+        ls = _place(seed, n_poles=8, n_planes=14)
+        rng = np.random.default_rng(seed)
+        d = ls.directions.copy()
+        planes = ls.types == LandmarkType.PLANE
+        ang = rng.choice([0.0, np.pi / 2], planes.sum()) + 0.3
+        d[planes] = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], axis=1)
+        bases = ls.bases.copy()
+        bases[planes, :, 0] = np.stack([-np.sin(ang), np.cos(ang), np.zeros_like(ang)], axis=1)
+        bases[planes, :, 1] = [0.0, 0.0, 1.0]
+        return LandmarkSet(ls.types, bases, ls.anchors, dict(ls.attributes))
+
+    q = _place(0)
+    maps = [q.transform(invert(_T(yaw, t, 0.0))) for yaw, t in ((0, [0, 0, 0]), (180, [3, -2, 0]), (73, [-4, 1, 0]))]
+    maps += [_place(s) for s in (1, 2, 3)] + [_place(4, n_poles=0), _place(5, n_planes=0), _place(6, 0, 0)]
+    maps += [manhattan(s) for s in (7, 8)]
+    idx = [quick_index(m) for m in maps]
+    for qi in (quick_index(q), quick_index(manhattan(7)), idx[-3]):
+        scores, est = quick_check_many(qi, idx)
+        assert len(scores) == len(idx)
+        for c, s, e in zip(idx, scores, est, strict=True):
+            s_ref, e_ref = quick_check_numpy(qi, c)
+            assert s == s_ref
+            np.testing.assert_allclose(e, e_ref, atol=1e-9)
+    assert scores[:3].min() >= 0 and quick_check_many(quick_index(q), [])[0].shape == (0,)
+    s_moved = quick_check_many(quick_index(q), idx[:3])[0]
+    assert s_moved.min() >= 0.9 * idx[0].size
