@@ -10,7 +10,10 @@
    per-scan index built before the query's clock starts) and the passing ones verified with the
    matcher, best first, until one is accepted (:func:`.verify.verify_query`), in parallel chunks.
    Every finished query is appended to ``<out>/queries.jsonl`` at once, so a killed run resumes
-   where it stopped.
+   where it stopped. ``queries.meta.json`` holds the fingerprint of the database (every scan's
+   cache key) and the config those records were computed with; when either changed (scans
+   re-simulated or re-extracted, another config), the old records are moved aside to
+   ``queries.stale.jsonl`` and the queries start again.
 4. **Outputs**: ``loops.csv``, ``loops.g2o`` (loop edges; vertices when poses are known),
    ``retrieval.csv``, ``summary.json``, ``config.yaml``; with ``optimize`` also the pose graph
    (:mod:`.posegraph`): ``odometry_kitti.txt``, ``optimized_kitti.txt``, ``optimized_tum.txt``.
@@ -44,6 +47,7 @@ from graffmatch.loops.verify import LoopClosure, verify_query
 Progress = Callable[[str, int, int], None]
 LANDMARK_DIR = "landmarks"
 QUERIES_FILE = "queries.jsonl"
+QUERIES_META = "queries.meta.json"
 
 
 def _stamp(path: Path | None) -> str:
@@ -143,6 +147,23 @@ def read_queries(out_dir: str | Path) -> dict[int, dict]:
     return done
 
 
+def _keep_matching_queries(out: Path, fingerprint: str) -> None:
+    """Move query records of another database or config aside (``queries.stale.jsonl``)."""
+    qfile, meta = out / QUERIES_FILE, out / QUERIES_META
+    try:
+        old = json.loads(meta.read_text()).get("fingerprint") if meta.is_file() else None
+    except json.JSONDecodeError:
+        old = None
+    if qfile.is_file() and old != fingerprint:
+        warnings.warn(
+            f"{qfile}: computed on another database or config; moved to {QUERIES_FILE.replace('.jsonl', '.stale.jsonl')} "
+            "and the queries start again",
+            stacklevel=3,
+        )
+        qfile.replace(out / QUERIES_FILE.replace(".jsonl", ".stale.jsonl"))
+    meta.write_text(json.dumps({"fingerprint": fingerprint}))
+
+
 def _drop_torn_tail(path: Path) -> None:
     """Cut a half-written last line (a kill mid-write) so that appends start on a new line."""
     if not path.is_file():
@@ -198,7 +219,10 @@ def build_database(
     keys = {i: _scan_key(dataset, i, config) for i in range(n)}
     todo = [i for i in range(n) if index.get(str(i)) != keys[i] or not (lm_dir / f"{i:06d}.npz").is_file()]
     cfg_json = config.model_dump_json()
-    stats: dict[str, Any] = {"extracted": len(todo), "cached": n - len(todo), "extract_cpu_s": 0.0}
+    stats: dict[str, Any] = {
+        "extracted": len(todo), "cached": n - len(todo), "extract_cpu_s": 0.0,
+        "database_key": hashlib.sha256("\n".join(keys[i] for i in range(n)).encode()).hexdigest()[:20],
+    }
     if todo:
         ex = make_executor("serial" if (workers == 1 and executor == "local") else executor, workers=workers, address=address)
         tasks = [(dataset, i, cfg_json, str(lm_dir / f"{i:06d}.npz")) for i in todo]
@@ -278,9 +302,14 @@ def run_loops(
             for r, (j, d) in enumerate(cs):
                 f.write(f"{q},{r},{j},{d:.6g}\n")
 
-    # verification, resumable
-    done = read_queries(out)
+    # verification, resumable: records of the same database, config and positions are kept
     cfg_json = config.model_dump_json()
+    fingerprint = hashlib.sha256(
+        "\n".join([stats["database_key"], cfg_json,
+                   "none" if positions is None else hashlib.sha256(positions.tobytes()).hexdigest()]).encode()
+    ).hexdigest()[:20]
+    _keep_matching_queries(out, fingerprint)
+    done = read_queries(out)
     todo = [q for q in range(n) if q not in done and cands[q]]
     empty = [q for q in range(n) if q not in done and not cands[q]]
     qfile = out / QUERIES_FILE

@@ -130,6 +130,30 @@ def test_rerun_resumes_from_cache_and_query_log(drives):
     assert s2["n_loops"] == summary["n_loops"]
 
 
+def test_query_records_of_another_database_are_not_resumed(drives, tmp_path):
+    """A resume keeps only records computed on the same landmark tables and config: after the
+    scans changed (re-simulated, re-extracted), the old records are moved aside, not reused."""
+    import shutil
+
+    ds, out, summary = drives["rev"]
+    target = tmp_path / "run"
+    shutil.copytree(out / "landmarks", target / "landmarks")
+    fake = {"query": 0, "candidates": [{"match": 0, "T": np.eye(4).ravel().tolist(), "confidence": 1.0,
+                                        "overlap": 1.0, "n_associations": 9, "n_agreeing": 9, "rank": 0,
+                                        "retrieval_distance": 0.0}], "verify_s": 0.0}
+    recs = [json.dumps(fake | {"query": q}) for q in range(N_SCANS)]
+    (target / "queries.jsonl").write_text("\n".join(recs) + "\n")  # records of an unknown database
+    with pytest.warns(UserWarning, match="another database or config"):
+        s = run_loops(ds, target, _config(), workers=1)
+    assert s["landmarks"]["extracted"] == 0
+    assert s["n_loops"] == summary["n_loops"]  # recomputed, not the 70 fake self-loops
+    assert len((target / "queries.stale.jsonl").read_text().splitlines()) == N_SCANS
+    # the same database and config again: every record is resumed, nothing moved aside
+    (target / "queries.stale.jsonl").unlink()
+    s2 = run_loops(ds, target, _config(), workers=1)
+    assert s2["n_loops"] == s["n_loops"] and not (target / "queries.stale.jsonl").exists()
+
+
 def test_online_detector_matches_batch(drives):
     ds, out, _summary = drives["rev"]
     from graffmatch.loops.database import load_landmarks
@@ -154,6 +178,7 @@ def test_pose_graph_with_drift_and_cli_files(drives, tmp_path):
 
     shutil.copytree(out / "landmarks", target / "landmarks")  # the extraction cache
     shutil.copy(out / "queries.jsonl", target / "queries.jsonl")  # and the verified queries
+    shutil.copy(out / "queries.meta.json", target / "queries.meta.json")  # of this database
     res = CliRunner().invoke(app, ["-q", "loops", str(ds.root), "-o", str(target), "--optimize",
                                    "--odometry", "drift", "--drift-yaw", "6", "--exclude-seconds", "0",
                                    "--exclude-frames", "30", "--workers", "1"])
@@ -184,7 +209,17 @@ def test_cluster_executors_extract_on_a_local_cluster(drives, tmp_path, executor
     (sub / "poses.txt").write_text("\n".join(rows) + "\n")
     shutil.copy(ds.root / "calib.txt", sub / "calib.txt")
     small = open_dataset("folder", sub)
-    s = run_loops(small, tmp_path / "out", _config(), executor=executor, workers=1)
+    cfg = _config()
+    cfg.retrieval.exclude_frames = 1  # queries 2-5 have candidates: verification chunks on the cluster too
+    s = run_loops(small, tmp_path / "out", cfg, executor=executor, workers=1, chunk_size=2)
     assert s["landmarks"]["extracted"] == 6
-    assert s["n_loops"] == 0
     assert all((tmp_path / "out" / "landmarks" / f"{i:06d}.npz").is_file() for i in range(6))
+    recs = read_queries(tmp_path / "out")
+    assert len(recs) == 6 and sum(bool(r["candidates"]) for r in recs.values()) == 4
+    # the same queries run serially give the same records (the cluster changes where, not what)
+    s1 = run_loops(small, tmp_path / "serial", cfg, workers=1, chunk_size=2)
+    assert s1["n_loops"] == s["n_loops"]
+    serial = read_queries(tmp_path / "serial")
+    for q in range(6):
+        assert [(c["match"], c["confidence"]) for c in recs[q]["candidates"]] == \
+            [(c["match"], c["confidence"]) for c in serial[q]["candidates"]]
