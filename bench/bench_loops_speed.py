@@ -7,7 +7,9 @@ extraction and per-scan precomputation excluded, on the benchmark drives' cached
 
 Needs the landmark tables of ``bench/bench_loops.py --prepare`` (``--runs``). For each drive the
 database (landmark maps, descriptors, quick-check indices) is built once, untimed, like
-extraction; then every ``--stride``-th query is timed serially, one process, in each mode:
+extraction; then every ``--stride``-th query is timed serially, one process, in each mode
+(wall and CPU time of the query: mean, median, p90, p95; the quick-check and verification
+parts; the load average before and after the drive):
 
 * ``verify-all-5``: top-5 descriptor candidates, every one verified (the previous pipeline);
 * ``quick-5``: top-5 candidates, the BEV quick check, passing ones verified best first, stop at
@@ -30,7 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, write_json
 
 COURTYARD = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "balm_courtyard"
-DRIVES = ["sim-downtown-s1", "sim-suburban-s4", "sim-openroad-s3", "balm_courtyard"]
+DRIVES = ["sim-downtown-s1", "sim-downtown-s5", "sim-suburban-s1", "sim-suburban-s4", "sim-openroad-s1",
+          "sim-openroad-s3", "balm_courtyard"]
 MODES = {
     "verify-all-5": dict(top_k=5, quick_check=False, stop_when_accepted=False),
     "quick-5": dict(top_k=5, quick_check=True, stop_when_accepted=True),
@@ -44,7 +47,7 @@ def main() -> None:
     ap.add_argument("--runs", type=Path, default=Path("/tmp/loops_bench/out"))
     ap.add_argument("--data", type=Path, default=Path("/tmp/loops_bench/data"))
     ap.add_argument("--drives", nargs="+", default=DRIVES)
-    ap.add_argument("--modes", nargs="+", default=list(MODES))
+    ap.add_argument("--modes", nargs="+", default=["quick-5", "quick-20"])
     ap.add_argument("--stride", type=int, default=4)
     ap.add_argument("--prepare", action="store_true")
     ap.add_argument("--json", type=Path, default=None)
@@ -90,16 +93,27 @@ def main() -> None:
             for q in range(len(db) - 1, len(db) - 4, -1):
                 det.detect(q)
             qs = [q for q in range(0, len(db), args.stride) if eligible_count(db.timestamps, q, cfg.retrieval) > 0]
-            per, nver, nloop = [], [], 0
+            per, cpu, ver_s, nver, nloop = [], [], [], [], 0
+            load_a = os.getloadavg()[0]
             for q in qs:
+                c0 = time.process_time()
                 t0 = time.perf_counter()
                 loops = det.detect(q)
                 per.append(time.perf_counter() - t0)
+                cpu.append(time.process_time() - c0)
                 nver.append(sum(r["verified"] for r in det.last_records))
+                ver_s.append(sum(r.get("verify_seconds", 0.0) for r in det.last_records))
                 nloop += bool(loops)
-            row = {"drive": drive, "mode": mode, "queries": len(qs), "ms_per_query_mean": 1e3 * float(np.mean(per)),
-                   "ms_per_query_median": 1e3 * float(np.median(per)), "ms_per_query_p90": 1e3 * float(np.percentile(per, 90)),
-                   "verified_per_query": float(np.mean(nver)), "queries_with_loop": nloop}
+            per_a, ver_a = 1e3 * np.asarray(per), 1e3 * np.asarray(ver_s)
+            row = {"drive": drive, "mode": mode, "queries": len(qs), "ms_per_query_mean": float(per_a.mean()),
+                   "ms_per_query_median": float(np.median(per_a)), "ms_per_query_p90": float(np.percentile(per_a, 90)),
+                   "ms_per_query_p95": float(np.percentile(per_a, 95)),
+                   "cpu_ms_per_query_mean": 1e3 * float(np.mean(cpu)),
+                   "verify_ms_per_query_mean": float(ver_a.mean()),
+                   "other_ms_per_query_mean": float((per_a - ver_a).mean()),  # retrieval + quick check + records
+                   "ms_per_verification": float(ver_a.sum() / max(sum(nver), 1)),
+                   "verified_per_query": float(np.mean(nver)), "queries_with_loop": nloop,
+                   "load_before": load_a, "load_after": os.getloadavg()[0]}
             rows.append(row)
             print(row, flush=True)
     if not args.prepare:

@@ -254,6 +254,7 @@ def verify_query(
             T=None if T is None else np.asarray(T).ravel().tolist(), confidence=v["confidence"],
             overlap=v["overlap"], n_associations=v["n_associations"], n_agreeing=v["n_agreeing"],
             rms_offset=v.get("rms_offset"), seconds=rec["seconds"] + v["seconds"], verified=True,
+            verify_seconds=v["seconds"],
         )
         if config.stop_when_accepted and v["confidence"] >= config.min_confidence:
             break
