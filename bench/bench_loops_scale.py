@@ -4,10 +4,16 @@
 
 Simulates a 5 km suburban drive (seed 7, OS1-64, 1 m between scans; ~80 % of its scans revisit
 an earlier place), then runs ``run_loops`` on it with the default configuration and executor
-(local processes). Reports the wall time of each phase, the peak memory of the whole process
-tree (driver + workers, sampled every 0.5 s from /proc) and the database bytes per scan. The
-run is niced (it is long), so its wall times are upper bounds on a shared machine; the load
-average is sampled alongside.
+(local processes). Reports the wall time of each phase, the CPU time and the peak memory of the
+whole process tree (driver + workers, sampled every 0.5 s from /proc) and the database bytes
+per scan. The run is niced (it is long), so its wall times are upper bounds on a shared
+machine; the load average is sampled alongside.
+
+A run may be split (``--extract-only`` first, or a kill): every invocation appends its own
+record (phase, wall, CPU, peak memory, load, queries done before and after) to
+``<out>/scale_runs.jsonl``, and the JSON reports all of them, so a resumed run is stated as
+such. ``run_loops`` itself decides what a resume keeps (landmark tables whose scan file,
+labels and extractor config are unchanged; query records of the same database and config).
 """
 
 from __future__ import annotations
@@ -46,18 +52,53 @@ def _tree_rss_mb(root: int) -> float:
     return total * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
+def _tree_cpu_s(root: int) -> dict[int, float]:
+    """User + system CPU seconds of ``root`` and each descendant now, by pid."""
+    children: dict[int, list[int]] = {}
+    cpu: dict[int, float] = {}
+    tick = os.sysconf("SC_CLK_TCK")
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat") as f:
+                parts = f.read().rsplit(")", 1)[1].split()
+            ppid, ut, st = int(parts[1]), int(parts[11]), int(parts[12])
+        except (OSError, IndexError, ValueError):
+            continue
+        children.setdefault(ppid, []).append(int(d))
+        cpu[int(d)] = (ut + st) / tick
+    out, stack = {}, [root]
+    while stack:
+        p = stack.pop()
+        if p in cpu:
+            out[p] = cpu[p]
+        stack.extend(children.get(p, []))
+    return out
+
+
 class PeakMemory:
-    """Samples the process tree's RSS and the load average in a background thread."""
+    """Samples the process tree's RSS, its CPU time and the load average in a background thread.
+
+    CPU time: the last sample of every process of the tree ever seen, summed (a worker that
+    exits loses at most its last 0.5 s).
+    """
 
     def __init__(self, period: float = 0.5) -> None:
         self.period, self.peak, self.loads = period, 0.0, []
+        self.cpu: dict[int, float] = {}
         self._stop = threading.Event()
         self._t = threading.Thread(target=self._run, daemon=True)
+
+    @property
+    def cpu_s(self) -> float:
+        return float(sum(self.cpu.values()))
 
     def _run(self) -> None:
         k = 0
         while not self._stop.is_set():
             self.peak = max(self.peak, _tree_rss_mb(os.getpid()))
+            self.cpu.update(_tree_cpu_s(os.getpid()))
             if k % 20 == 0:
                 self.loads.append(os.getloadavg()[0])
             k += 1
@@ -70,6 +111,7 @@ class PeakMemory:
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
         self._t.join()
+        self.cpu.update(_tree_cpu_s(os.getpid()))
 
 
 def status(out: Path) -> dict:
@@ -118,6 +160,13 @@ def status(out: Path) -> dict:
     return res
 
 
+def _load_stats(loads: list[float]) -> dict:
+    import numpy as np
+
+    a = np.asarray(loads or [os.getloadavg()[0]])
+    return {"min": float(a.min()), "mean": float(a.mean()), "max": float(a.max())}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=Path("/tmp/loops_scale/data"))
@@ -127,6 +176,8 @@ def main() -> None:
     ap.add_argument("--executor", default="local")
     ap.add_argument("--workers", type=int, default=None)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--extract-only", action="store_true",
+                    help="simulate and build the landmark database, then stop (a later run resumes from it)")
     ap.add_argument("--status", action="store_true",
                     help="do not run: report the state of a run folder (--out), e.g. one still running "
                     "or cut by a deadline: tables extracted and their size, extraction span, queries done")
@@ -135,55 +186,80 @@ def main() -> None:
         write_json(str(args.json) if args.json else None, status(args.out))
         return
 
-    import numpy as np
+    import json
 
     from graffmatch.datasets.registry import open_dataset
-    from graffmatch.datasets.simulator import SUITES, simulate_dataset
+    from graffmatch.datasets.simulator import SIMULATOR_VERSION, SUITES, simulate_dataset
     from graffmatch.loops.detector import LoopDetectorConfig
-    from graffmatch.loops.sequence import run_loops
+    from graffmatch.loops.sequence import build_database, read_queries, run_loops
 
     s = SUITES["sim-suburban"]
-    t0 = time.perf_counter()
+    t_start = time.time()
+    phases: dict[str, float] = {}
     last = [0.0]
 
     def sim_progress(i: int, n: int) -> None:
         if time.perf_counter() - last[0] > 60:
             last[0] = time.perf_counter()
-            print(f"simulate {i}/{n}", flush=True)
-
-    drive = simulate_dataset(args.data / f"suburban-s{args.seed}-{args.scans}", style=s.style, seed=args.seed,
-                             n_scans=args.scans, sensor=s.sensor, world_config=s.world_config(), reuse=True,
-                             progress=sim_progress)
-    sim_s = time.perf_counter() - t0
-    ds = open_dataset("folder", drive)
-    phases: dict[str, float] = {}
+            print(f"simulate {i}/{n} load {os.getloadavg()[0]:.1f}", flush=True)
 
     def progress(stage: str, done: int, total: int) -> None:
         phases[stage] = time.perf_counter()
         if done % 250 == 0 or done == total:
             print(f"{stage} {done}/{total} load {os.getloadavg()[0]:.1f}", flush=True)
 
+    args.out.mkdir(parents=True, exist_ok=True)
+    queries_before = len(read_queries(args.out))
     with PeakMemory() as mem:
+        t0 = time.perf_counter()
+        drive = simulate_dataset(args.data / f"suburban-s{args.seed}-{args.scans}", style=s.style, seed=args.seed,
+                                 n_scans=args.scans, sensor=s.sensor, world_config=s.world_config(), reuse=True,
+                                 progress=sim_progress)
         t1 = time.perf_counter()
-        summary = run_loops(ds, args.out, LoopDetectorConfig(), executor=args.executor, workers=args.workers,
-                            progress=progress)
-        wall = time.perf_counter() - t1
-    payload = {
-        "machine": machine(),
+        ds = open_dataset("folder", drive)
+        config = LoopDetectorConfig()
+        if args.extract_only:
+            _, stats = build_database(ds, args.out, config, args.executor, args.workers, progress=progress)
+            summary = None
+        else:
+            summary = run_loops(ds, args.out, config, executor=args.executor, workers=args.workers,
+                                progress=progress)
+            stats = summary["landmarks"]
+        t2 = time.perf_counter()
+    record = {
+        "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t_start)),
         "command": " ".join(sys.argv),
         "niced": os.nice(0),
+        "phase": "extract-only" if args.extract_only else "full",
+        "simulator_version": SIMULATOR_VERSION,
+        "simulate_s": t1 - t0,
+        "wall_s": t2 - t0,
+        "loops_wall_s": t2 - t1,
+        "extract_wall_s": (phases["landmarks"] - t1) if "landmarks" in phases else 0.0,
+        "tables_extracted": stats["extracted"],
+        "tables_cached": stats["cached"],
+        "queries_done_before": queries_before,
+        "queries_done_after": len(read_queries(args.out)),
+        "cpu_s_tree": mem.cpu_s,
+        "peak_rss_tree_mb": mem.peak,
+        "load_avg": _load_stats(mem.loads),
+    }
+    with open(args.out / "scale_runs.jsonl", "a") as f:
+        f.write(json.dumps(record) + "\n")
+    runs = [json.loads(line) for line in (args.out / "scale_runs.jsonl").read_text().splitlines() if line.strip()]
+    payload = {
+        "machine": machine(),
         "drive": str(drive),
         "n_scans": len(ds),
-        "simulate_s": sim_s,
-        "loops_wall_s": wall,
-        "extract_wall_s": phases["landmarks"] - t1 if "landmarks" in phases else 0.0,
-        "peak_rss_tree_mb": mem.peak,
-        "load_avg_samples": {"min": float(np.min(mem.loads)), "mean": float(np.mean(mem.loads)),
-                             "max": float(np.max(mem.loads))},
-        "database_bytes_per_scan": summary["database_bytes_per_scan"],
+        "invocations": runs,
+        "totals_over_invocations": {
+            "wall_s": float(sum(r["wall_s"] for r in runs)),
+            "cpu_s_tree": float(sum(r["cpu_s_tree"] for r in runs)),
+            "peak_rss_tree_mb": float(max(r["peak_rss_tree_mb"] for r in runs)),
+        },
         "summary": summary,
     }
-    print({k: v for k, v in payload.items() if k != "summary"})
+    print(json.dumps({k: v for k, v in payload.items() if k != "summary"}, indent=1))
     write_json(str(args.json) if args.json else None, payload)
 
 
