@@ -27,6 +27,13 @@ class VerificationConfig(BaseModel):
     rival_search: bool = Field(
         True, description="also search the best clique among associations inconsistent with the winner"
     )
+    pair_hypotheses: int = Field(
+        24, ge=0,
+        description="graphs of lines only (poles): the best distinct transforms by consensus from every "
+        "consistent pair of associations become candidates (0: off)",
+    )
+    pair_max_edges: int = Field(4000, ge=1, description="... from at most this many most consistent pairs")
+    pair_points: int = Field(128, ge=8, description="... ranked by the occupancy of this many evidence points per scan")
     max_hypotheses: int = Field(8, ge=1, description="distinct hypotheses scored exactly (after a fast first pass over all)")
     merge_deg: float = Field(3.0, gt=0, description="hypotheses closer than this rotation merge [deg]")
     merge_m: float = Field(0.5, gt=0, description="... and this translation [m]")

@@ -12,13 +12,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from graffmatch.association.clipper import ClipperConfig, solve_clipper
 from graffmatch.association.cliques import clique_objective, greedy_cliques
+from graffmatch.errors import DegenerateGeometryError
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
+from graffmatch.registration.closed_form import register_batch
 from graffmatch.verification.config import VerificationConfig
 
 
@@ -61,6 +64,20 @@ def consistent_with(
     return (ang <= max_deg) & (off <= max_m)
 
 
+def _one_to_one(associations: NDArray[np.int64], ok: NDArray[np.int64], cost: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Indices ``ok`` thinned to one association per source and per target landmark (smallest
+    cost wins), in cost order."""
+    ok = ok[np.argsort(cost, kind="stable")]
+    A = associations[ok]
+    _, first_s = np.unique(A[:, 0], return_index=True)
+    keep = np.zeros(len(A), bool)
+    keep[first_s] = True
+    A2 = A[keep]
+    order_kept = np.flatnonzero(keep)
+    _, first_t = np.unique(A2[:, 1], return_index=True)
+    return ok[np.sort(order_kept[first_t])]  # back in cost order
+
+
 def reassociate(
     source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64],
     T_target_source: NDArray[np.float64], max_deg: float, max_m: float,
@@ -71,17 +88,106 @@ def reassociate(
     ok = np.flatnonzero((ang <= max_deg) & (off <= max_m))
     if len(ok) == 0:
         return associations[:0]
-    cost = off[ok] / max_m + ang[ok] / max_deg
-    ok = ok[np.argsort(cost, kind="stable")]
-    A = associations[ok]
-    _, first_s = np.unique(A[:, 0], return_index=True)
-    keep = np.zeros(len(A), bool)
-    keep[first_s] = True
-    A2 = A[keep]
-    order_kept = np.flatnonzero(keep)
-    _, first_t = np.unique(A2[:, 1], return_index=True)
-    sel = np.sort(order_kept[first_t])  # back in cost order
-    return A[sel]
+    return associations[_one_to_one(associations, ok, off[ok] / max_m + ang[ok] / max_deg)]
+
+
+def pair_transforms(
+    source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64], W: sp.csr_matrix,
+    cfg: VerificationConfig, kappa_max: float,
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Graphs of lines only (poles): the transform of every consistent pair of associations,
+    registered on its own (two poles fix the yaw and the horizontal translation), and its
+    consensus (putative associations within ``consistent_deg`` / ``consistent_m``).
+
+    Dense wrong cliques beat the true one in pole-only graphs (downtown: many poles, regularly
+    spaced along the street, agree by chance); this RANSAC-like enumeration over the graph's
+    edges reaches the true transform whenever two of its poles are matched. Returns (E, 4, 4)
+    transforms and (E,) consensus counts; empty when the graph holds other types or
+    ``pair_hypotheses`` is 0."""
+    none = np.zeros((0, 4, 4)), np.zeros(0, np.int64)
+    m = len(associations)
+    if cfg.pair_hypotheses == 0 or m < 2 or np.any(source.types[associations[:, 0]] != LandmarkType.LINE):
+        return none
+    U = sp.triu(W, k=1).tocoo()
+    r, c, v = U.row.astype(np.int64), U.col.astype(np.int64), U.data
+    keep = (associations[r, 0] != associations[c, 0]) & (associations[r, 1] != associations[c, 1])
+    r, c, v = r[keep], c[keep], v[keep]
+    if len(r) == 0:
+        return none
+    if len(r) > cfg.pair_max_edges:  # the most consistent edges
+        top = np.sort(np.argsort(-v, kind="stable")[: cfg.pair_max_edges])
+        r, c = r[top], c[top]
+    E = len(r)
+    try:
+        b = register_batch(source, target, associations[np.stack([r, c], 1).ravel()],
+                           np.repeat(np.arange(E), 2), None, kappa_max, E)
+    except DegenerateGeometryError:
+        return none
+    usable = b.used_line_positions & np.isfinite(b.T_target_source).all(axis=(1, 2))
+    Ts = np.ascontiguousarray(b.T_target_source[usable])
+    a_s, a_t = associations[:, 0], associations[:, 1]
+    count, _ = _line_consensus(
+        Ts, np.ascontiguousarray(source.directions[a_s]), np.ascontiguousarray(target.directions[a_t]),
+        np.ascontiguousarray(source.anchors[a_s]), np.ascontiguousarray(target.anchors[a_t]),
+        float(np.cos(np.radians(cfg.consistent_deg))), float(cfg.consistent_m))
+    return Ts, count
+
+
+def pair_candidates(
+    source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64], Ts: NDArray[np.float64],
+    order: NDArray[np.int64], cfg: VerificationConfig,
+) -> list[Candidate]:
+    """The first ``pair_hypotheses`` distinct transforms of ``Ts`` in ``order`` (closer than
+    merge_deg / merge_m to an earlier one: skipped), each as the clique of the associations
+    consistent with it (one-to-one; at least 2)."""
+    R, t = Ts[:, :3, :3], Ts[:, :3, 3]
+    out: list[Candidate] = []
+    kept = np.zeros(0, np.int64)
+    tr_min = 1.0 + 2.0 * (np.cos(np.radians(cfg.merge_deg)) - 1.0)  # trace(R_a^T R_b) at merge_deg
+    for e in order:
+        if len(kept):
+            tr = np.einsum("kij,ij->k", R[kept], R[e])
+            if np.any((tr >= tr_min) & (np.linalg.norm(t[kept] - t[e], axis=1) <= cfg.merge_m)):
+                continue
+        ang, off = residuals(source, target, associations, Ts[e])
+        ok = np.flatnonzero((ang <= cfg.consistent_deg) & (off <= cfg.consistent_m))
+        sel = _one_to_one(associations, ok, off[ok])
+        if len(sel) < 2:
+            continue
+        out.append(Candidate(np.sort(sel), "pairs"))
+        kept = np.r_[kept, e]
+        if len(out) >= cfg.pair_hypotheses:
+            break
+    return out
+
+
+@nb.njit(cache=True)
+def _line_consensus(Ts: NDArray[np.float64], ds: NDArray[np.float64], dt: NDArray[np.float64],
+                    bs: NDArray[np.float64], bt: NDArray[np.float64], cos_min: float,
+                    max_m: float) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Per transform: how many line associations agree with it (direction within ``cos_min``,
+    axes within ``max_m``) and the sum of their offsets. One compiled pass over E x m."""
+    E, m = Ts.shape[0], ds.shape[0]
+    count = np.zeros(E, np.int64)
+    spread = np.zeros(E)
+    for e in range(E):
+        T = Ts[e]
+        for i in range(m):
+            c = 0.0
+            for a in range(3):
+                c += dt[i, a] * (T[a, 0] * ds[i, 0] + T[a, 1] * ds[i, 1] + T[a, 2] * ds[i, 2])
+            if abs(c) < cos_min:
+                continue
+            r0 = bt[i, 0] - (T[0, 0] * bs[i, 0] + T[0, 1] * bs[i, 1] + T[0, 2] * bs[i, 2] + T[0, 3])
+            r1 = bt[i, 1] - (T[1, 0] * bs[i, 0] + T[1, 1] * bs[i, 1] + T[1, 2] * bs[i, 2] + T[1, 3])
+            r2 = bt[i, 2] - (T[2, 0] * bs[i, 0] + T[2, 1] * bs[i, 1] + T[2, 2] * bs[i, 2] + T[2, 3])
+            al = r0 * dt[i, 0] + r1 * dt[i, 1] + r2 * dt[i, 2]
+            p0, p1, p2 = r0 - al * dt[i, 0], r1 - al * dt[i, 1], r2 - al * dt[i, 2]
+            off = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+            if off <= max_m:
+                count[e] += 1
+                spread[e] += off
+    return count, spread
 
 
 def translation_redundancy(

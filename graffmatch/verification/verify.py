@@ -36,6 +36,8 @@ from graffmatch.verification.hypotheses import (
     candidate_cliques,
     consistent_with,
     local_perturbations,
+    pair_candidates,
+    pair_transforms,
     reassociate,
     rival_cliques,
     translation_redundancy,
@@ -179,6 +181,23 @@ def _check_translation(verdict: Verdict, source: LandmarkSet, target: LandmarkSe
             return
 
 
+def _pair_candidates(source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64],
+                     W: sp.csr_matrix, cfg: VerificationConfig, kappa_max: float, ev: Evidence) -> list[Candidate]:
+    """Pole-pair transforms (lines-only graphs), ranked by the evidence points they explain
+    (one vectorised occupancy pass over all of them; consensus breaks ties), or by consensus
+    without points: pole consensus alone favours the street's sliding twins (downtown)."""
+    Ts, count = pair_transforms(source, target, associations, W, cfg, kappa_max)
+    if len(Ts) == 0:
+        return []
+    idx = np.arange(len(Ts))
+    if ev.has_points:
+        occ = occupancy_overlap(ev.source, ev.target, Ts, cfg.inlier_m, cfg.pair_points).mean(axis=1)  # type: ignore[arg-type]
+        order = np.lexsort((idx, -count, -occ))
+    else:
+        order = np.lexsort((idx, -count))
+    return pair_candidates(source, target, associations, Ts, order[count[order] >= 2], cfg)
+
+
 def score_hypotheses(
     hyps: list[Hypothesis], source: LandmarkSet, target: LandmarkSet, ev: Evidence,
     cfg: VerificationConfig, exact: bool,
@@ -214,6 +233,8 @@ def verify_graph(
     tm = timings if timings is not None else {}
     t0 = time.perf_counter()
     cands = candidate_cliques(W, winner, cfg, solver)
+    ev = evidence if evidence is not None else evidence_for(source, target, cfg)
+    cands += _pair_candidates(source, target, associations, W, cfg, kappa_max, ev)
     t1 = time.perf_counter()
     hyps = _register(source, target, associations, W, cands, kappa_max)
     t2 = time.perf_counter()
@@ -236,7 +257,6 @@ def verify_graph(
         hyps += _register(source, target, associations, W, _gated(hyps, gate, min_associations), kappa_max)
         tm["registration"] += time.perf_counter() - t4
     t5 = time.perf_counter()
-    ev = evidence if evidence is not None else evidence_for(source, target, cfg)
     score_hypotheses(hyps, source, target, ev, cfg, exact=False)
     merged = merge_hypotheses(hyps, cfg)[: cfg.max_hypotheses]
     if ev.has_points:  # stage 2: align the leaders on the evidence points, exact distances
@@ -251,6 +271,8 @@ def verify_graph(
         merged = merge_hypotheses(merged, cfg)
     min_score = cfg.min_overlap if ev.has_points else cfg.min_landmark_overlap
     verdict = decide(merged, cfg, min_score)
+    if verdict.best is not None:
+        verdict.best.info["evidence"] = "points" if ev.has_points else "landmarks"
     if not ev.has_points and verdict.best is not None:
         n_ok = verdict.best.info.get("landmarks_explained", 0)
         if n_ok < cfg.min_landmarks_explained:
