@@ -73,77 +73,190 @@ def _lookup(tk: NDArray[np.int64], tv: NDArray[np.int64], key: int) -> int:
         s = (s + 1) & mask
 
 
-@nb.njit(cache=True)
-def _grid_query(q: NDArray[np.float64], spts: NDArray[np.float64], order: NDArray[np.int64], inv_h: float,
-                origin: NDArray[np.int64], dims: NDArray[np.int64], dense: NDArray[np.int32],
-                tk: NDArray[np.int64], tv: NDArray[np.int64], starts: NDArray[np.int64], r2: float,
-                nearest: bool, out: NDArray[np.int64]) -> None:
-    """For each query point, the index of its nearest cloud point with squared distance < r2
-    (-1 if none); ``nearest=False`` stops at the first such point (existence only).
+@nb.njit(cache=True, inline="always")
+def _nearest_in_grid(qx: float, qy: float, qz: float, spts: NDArray[np.float64], h: float, inv_h: float,
+                     origin: NDArray[np.int64], dims: NDArray[np.int64], dense: NDArray[np.int32],
+                     tk: NDArray[np.int64], tv: NDArray[np.int64], starts: NDArray[np.int64], r2: float,
+                     nearest: bool) -> int:
+    """Row of ``spts`` (cell order) nearest to (qx, qy, qz) with squared distance < r2, -1 if
+    none; ``nearest=False``: the first such row (existence only).
 
     Cells are twice the radius: the ball around a point lies in the 2 x 2 x 2 cells nearest to
     it (per axis, its own cell and the neighbour on the side of the half it is in). A cell is
-    found in ``dense`` (a full table over the cloud's box) when it is given, else in the hash."""
+    found in ``dense`` (a full table over the cloud's box) when it is given, else in the hash.
+    The own cell is searched first; a neighbour cell whose box is no closer than the best point
+    so far is skipped (it cannot hold a strictly closer one, so the answer is unchanged)."""
+    ux = qx * inv_h
+    uy = qy * inv_h
+    uz = qz * inv_h
+    fx = np.floor(ux)
+    fy = np.floor(uy)
+    fz = np.floor(uz)
+    gx = fx - origin[0]
+    gy = fy - origin[1]
+    gz = fz - origin[2]
+    if not (gx >= -1.0 and gx <= dims[0] and gy >= -1.0 and gy <= dims[1] and gz >= -1.0 and gz <= dims[2]):
+        return -1  # also NaN: farther than a cell from the cloud
+    cx, cy, cz = int(gx), int(gy), int(gz)
+    rx = ux - fx
+    ry = uy - fy
+    rz = uz - fz
+    sx = 1 if rx >= 0.5 else -1
+    sy = 1 if ry >= 0.5 else -1
+    sz = 1 if rz >= 0.5 else -1
+    # distance to the neighbour cell's face per axis, less a margin far above the rounding of
+    # the cell coordinates (|u| < 2^28: error < 1e-7 cells), so a skipped cell is truly farther
+    tol = 1e-6 * h
+    bx = max(((1.0 - rx) if sx > 0 else rx) * h - tol, 0.0)
+    by = max(((1.0 - ry) if sy > 0 else ry) * h - tol, 0.0)
+    bz = max(((1.0 - rz) if sz > 0 else rz) * h - tol, 0.0)
+    bx2 = bx * bx
+    by2 = by * by
+    bz2 = bz * bz
     use_dense = len(dense) > 0
-    for a in range(q.shape[0]):
-        qx, qy, qz = q[a, 0], q[a, 1], q[a, 2]
-        ux = qx * inv_h
-        uy = qy * inv_h
-        uz = qz * inv_h
-        fx = np.floor(ux)
-        fy = np.floor(uy)
-        fz = np.floor(uz)
-        out[a] = -1
-        gx = fx - origin[0]
-        gy = fy - origin[1]
-        gz = fz - origin[2]
-        if not (gx >= -1.0 and gx <= dims[0] and gy >= -1.0 and gy <= dims[1] and gz >= -1.0 and gz <= dims[2]):
-            continue  # also NaN: farther than a cell from the cloud
-        cx, cy, cz = int(gx), int(gy), int(gz)
-        sx = 1 if ux - fx >= 0.5 else -1
-        sy = 1 if uy - fy >= 0.5 else -1
-        sz = 1 if uz - fz >= 0.5 else -1
-        best = r2
-        bi = -1
-        for c8 in range(8):
-            x = cx + (sx if c8 & 1 else 0)
-            y = cy + (sy if c8 & 2 else 0)
-            z = cz + (sz if c8 & 4 else 0)
-            if x < 0 or y < 0 or z < 0 or x >= dims[0] or y >= dims[1] or z >= dims[2]:
-                continue
-            if use_dense:
-                c = dense[(x * dims[1] + y) * dims[2] + z]
-            else:
-                c = _lookup(tk, tv, (x << (2 * _GRID_BITS)) | (y << _GRID_BITS) | z)
-            if c < 0:
-                continue
-            for s in range(starts[c], starts[c + 1]):
-                d0 = qx - spts[s, 0]
-                d1 = qy - spts[s, 1]
-                d2 = qz - spts[s, 2]
-                d = d0 * d0 + d1 * d1 + d2 * d2
-                if d < best:
-                    best = d
-                    bi = s
-            if bi >= 0 and not nearest:
-                break
-        if bi >= 0:
-            out[a] = order[bi]
+    best = r2
+    bi = -1
+    for c8 in range(8):
+        box = 0.0
+        if c8 & 1:
+            box += bx2
+        if c8 & 2:
+            box += by2
+        if c8 & 4:
+            box += bz2
+        if box >= best:
+            continue
+        x = cx + (sx if c8 & 1 else 0)
+        y = cy + (sy if c8 & 2 else 0)
+        z = cz + (sz if c8 & 4 else 0)
+        if x < 0 or y < 0 or z < 0 or x >= dims[0] or y >= dims[1] or z >= dims[2]:
+            continue
+        if use_dense:
+            c = dense[(x * dims[1] + y) * dims[2] + z]
+        else:
+            c = _lookup(tk, tv, (x << (2 * _GRID_BITS)) | (y << _GRID_BITS) | z)
+        if c < 0:
+            continue
+        for s in range(starts[c], starts[c + 1]):
+            d0 = qx - spts[s, 0]
+            d1 = qy - spts[s, 1]
+            d2 = qz - spts[s, 2]
+            d = d0 * d0 + d1 * d1 + d2 * d2
+            if d < best:
+                best = d
+                bi = s
+                if not nearest:
+                    return bi
+    return bi
 
 
 @nb.njit(cache=True)
-def occupied_hits(q: NDArray[np.float64], voxel: float, origin: NDArray[np.float64], tk: NDArray[np.int64],
-                   tv: NDArray[np.int64]) -> NDArray[np.int64]:
-    """(H, n, 3) points -> (H,) how many fall in an occupied voxel (the keys of :func:`voxel_keys`)."""
-    H, n = q.shape[0], q.shape[1]
+def _grid_query(q: NDArray[np.float64], spts: NDArray[np.float64], order: NDArray[np.int64], h: float,
+                inv_h: float, origin: NDArray[np.int64], dims: NDArray[np.int64], dense: NDArray[np.int32],
+                tk: NDArray[np.int64], tv: NDArray[np.int64], starts: NDArray[np.int64], r2: float,
+                nearest: bool, out: NDArray[np.int64]) -> None:
+    """For each query point, the index of its nearest cloud point with squared distance < r2
+    (-1 if none); ``nearest=False``: of any such point (existence only)."""
+    for a in range(q.shape[0]):
+        bi = _nearest_in_grid(q[a, 0], q[a, 1], q[a, 2], spts, h, inv_h, origin, dims, dense, tk, tv,
+                              starts, r2, nearest)
+        out[a] = order[bi] if bi >= 0 else -1
+
+
+@nb.njit(cache=True)
+def _align_step(P: NDArray[np.float64], T: NDArray[np.float64], spts: NDArray[np.float64], h: float,
+                inv_h: float, origin: NDArray[np.int64], dims: NDArray[np.int64], dense: NDArray[np.int32],
+                tk: NDArray[np.int64], tv: NDArray[np.int64], starts: NDArray[np.int64], r2: float,
+                min_pairs: int, rows: NDArray[np.int64]) -> int:
+    """One point-to-point step: pair each row of ``P`` moved by ``T`` with its nearest cloud
+    point (squared distance < r2), then replace ``T`` by the closed-form rigid fit of the pairs
+    (centroids, cross-covariance, SVD with the reflection fixed). Returns the number of pairs;
+    fewer than ``min_pairs``: ``T`` is left as it was."""
+    R = T[:3, :3]
+    n = 0
+    sa = np.zeros(3)
+    sb = np.zeros(3)
+    for a in range(P.shape[0]):
+        px, py, pz = P[a, 0], P[a, 1], P[a, 2]
+        qx = (R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz) + T[0, 3]
+        qy = (R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz) + T[1, 3]
+        qz = (R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz) + T[2, 3]
+        bi = _nearest_in_grid(qx, qy, qz, spts, h, inv_h, origin, dims, dense, tk, tv, starts, r2, True)
+        rows[a] = bi
+        if bi >= 0:
+            n += 1
+            sa[0] += px
+            sa[1] += py
+            sa[2] += pz
+            sb[0] += spts[bi, 0]
+            sb[1] += spts[bi, 1]
+            sb[2] += spts[bi, 2]
+    if n < min_pairs:
+        return n
+    ca = sa / n
+    cb = sb / n
+    H = np.zeros((3, 3))
+    for a in range(P.shape[0]):
+        bi = rows[a]
+        if bi < 0:
+            continue
+        a0, a1, a2 = P[a, 0] - ca[0], P[a, 1] - ca[1], P[a, 2] - ca[2]
+        b0, b1, b2 = spts[bi, 0] - cb[0], spts[bi, 1] - cb[1], spts[bi, 2] - cb[2]
+        H[0, 0] += a0 * b0
+        H[0, 1] += a0 * b1
+        H[0, 2] += a0 * b2
+        H[1, 0] += a1 * b0
+        H[1, 1] += a1 * b1
+        H[1, 2] += a1 * b2
+        H[2, 0] += a2 * b0
+        H[2, 1] += a2 * b1
+        H[2, 2] += a2 * b2
+    U, _, Vt = np.linalg.svd(H)
+    V = np.ascontiguousarray(Vt.T)
+    M = V @ U.T
+    det = (M[0, 0] * (M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]) - M[0, 1] * (M[1, 0] * M[2, 2] - M[1, 2] * M[2, 0])
+           + M[0, 2] * (M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]))
+    if det < 0:
+        V[:, 2] = -V[:, 2]
+        M = V @ U.T
+    for i in range(3):
+        for j in range(3):
+            T[i, j] = M[i, j]
+        T[i, 3] = cb[i] - (M[i, 0] * ca[0] + M[i, 1] * ca[1] + M[i, 2] * ca[2])
+        T[3, i] = 0.0
+    T[3, 3] = 1.0
+    return n
+
+
+@nb.njit(cache=True)
+def occupied_hits(P: NDArray[np.float64], Ts: NDArray[np.float64], inverse: bool, voxel: float,
+                  origin: NDArray[np.float64], tk: NDArray[np.int64], tv: NDArray[np.int64]) -> NDArray[np.int64]:
+    """(H,) how many of the points ``P`` (n, 3) moved by each of H transforms ``Ts`` (by their
+    inverses when ``inverse``) fall in an occupied voxel (the keys of :func:`voxel_keys`). One
+    pass, no (H, n, 3) array of moved points."""
+    H, n = Ts.shape[0], P.shape[0]
     out = np.zeros(H, np.int64)
     bound = float((1 << (_KEY_BITS - 1)) - 2)
+    R = np.empty((3, 3))
+    t = np.empty(3)
     for hh in range(H):
+        for i in range(3):
+            for j in range(3):
+                R[i, j] = Ts[hh, j, i] if inverse else Ts[hh, i, j]
+        for i in range(3):
+            if inverse:  # R^T (p - t) = R^T p - R^T t
+                t[i] = -(R[i, 0] * Ts[hh, 0, 3] + R[i, 1] * Ts[hh, 1, 3] + R[i, 2] * Ts[hh, 2, 3])
+            else:
+                t[i] = Ts[hh, i, 3]
         cnt = 0
         for a in range(n):
-            i = np.floor(q[hh, a, 0] / voxel) - origin[0]
-            j = np.floor(q[hh, a, 1] / voxel) - origin[1]
-            k = np.floor(q[hh, a, 2] / voxel) - origin[2]
+            px, py, pz = P[a, 0], P[a, 1], P[a, 2]
+            qx = (R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz) + t[0]
+            qy = (R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz) + t[1]
+            qz = (R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz) + t[2]
+            i = np.floor(qx / voxel) - origin[0]
+            j = np.floor(qy / voxel) - origin[1]
+            k = np.floor(qz / voxel) - origin[2]
             if not (abs(i) < bound and abs(j) < bound and abs(k) < bound):
                 continue
             key = (((int(i) + _KEY_OFF) << (2 * _KEY_BITS)) | ((int(j) + _KEY_OFF) << _KEY_BITS)
@@ -198,6 +311,14 @@ class CellHash:
         any point within the radius (enough to count explained points)."""
         q = np.ascontiguousarray(q, dtype=np.float64).reshape(-1, 3)
         out = np.empty(len(q), np.int64)
-        _grid_query(q, self.points, self.order, self.inv_h, self.origin, self.dims, self.dense,
+        _grid_query(q, self.points, self.order, self.h, self.inv_h, self.origin, self.dims, self.dense,
                     self.tk, self.tv, self.starts, self.radius * self.radius, nearest, out)
         return out
+
+    def align_step(self, P: NDArray[np.float64], T: NDArray[np.float64], min_pairs: int = 10) -> int:
+        """One nearest-neighbour rigid alignment step of ``P`` (C-contiguous float64) onto this
+        cloud within the radius, updating the 4 x 4 ``T`` (C-contiguous float64) in place; see
+        :func:`_align_step`. Returns the number of pairs (``T`` unchanged below ``min_pairs``)."""
+        rows = np.empty(len(P), np.int64)
+        return int(_align_step(P, T, self.points, self.h, self.inv_h, self.origin, self.dims, self.dense,
+                               self.tk, self.tv, self.starts, self.radius * self.radius, min_pairs, rows))

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 
@@ -62,17 +63,40 @@ def merge_hypotheses(hyps: list[Hypothesis], cfg: VerificationConfig,
         return (-first, h.degenerate, -h.n_associations, -h.objective)
 
     order = sorted(range(len(hyps)), key=lambda i: rank(hyps[i]))
-    Ts = np.stack([hyps[i].T_target_source for i in order])
-    R, t = Ts[:, :3, :3], Ts[:, :3, 3]
-    tr = np.einsum("aij,bij->ab", R, R)  # trace(R_a^T R_b)
-    rot = np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
-    dist = np.linalg.norm(t[:, None] - t[None], axis=2)
-    close = (rot <= cfg.merge_deg) & (dist <= cfg.merge_m)
-    kept: list[int] = []
-    for a in range(len(order)):
-        if not kept or not close[a, kept].any():
-            kept.append(a)
+    Ts = np.ascontiguousarray(np.stack([hyps[i].T_target_source for i in order]), dtype=np.float64)
+    kept = _distinct_rows(Ts, float(cfg.merge_deg), float(cfg.merge_m))
     return [hyps[order[a]] for a in kept]
+
+
+@nb.njit(cache=True)
+def _distinct_rows(Ts: NDArray[np.float64], max_deg: float, max_m: float) -> NDArray[np.int64]:
+    """Greedy in row order: keep a transform unless it is within ``max_deg`` (rotation angle
+    from trace(R_a^T R_b)) and ``max_m`` of one kept before it. Compares with the kept rows
+    only, never all pairs (verification merges up to a few hundred hypotheses)."""
+    H = Ts.shape[0]
+    kept = np.empty(H, np.int64)
+    nk = 0
+    for a in range(H):
+        close = False
+        for q in range(nk):
+            b = kept[q]
+            d0 = Ts[a, 0, 3] - Ts[b, 0, 3]
+            d1 = Ts[a, 1, 3] - Ts[b, 1, 3]
+            d2 = Ts[a, 2, 3] - Ts[b, 2, 3]
+            if not np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) <= max_m:
+                continue
+            tr = 0.0
+            for i in range(3):
+                for j in range(3):
+                    tr += Ts[a, i, j] * Ts[b, i, j]
+            c = min(max((tr - 1.0) / 2.0, -1.0), 1.0)
+            if np.degrees(np.arccos(c)) <= max_deg:
+                close = True
+                break
+        if not close:
+            kept[nk] = a
+            nk += 1
+    return kept[:nk]
 
 
 @dataclass

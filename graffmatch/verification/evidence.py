@@ -57,13 +57,19 @@ class SupportCloud:
     def neighbours(self, q: NDArray[np.float64], radius: float, nearest: bool = True) -> NDArray[np.int64]:
         """Index of the nearest point within ``radius`` (strictly) of each row of ``q``, -1 if
         none; ``nearest=False``: of any point within the radius."""
-        h = self._hashes.get(radius)
-        if h is None:
-            h = self._hashes[radius] = CellHash(self.points, radius)
+        h = self.cell_hash(radius)
         if h.ok:
             return h.query(q, nearest)
         _, idx = self.tree.query(q, k=1, distance_upper_bound=radius)
         return np.where(idx < len(self.points), idx, -1)
+
+    def cell_hash(self, radius: float) -> CellHash:
+        """The points' cell hash for ``radius`` (built on first use; ``.ok`` False when the
+        coordinates do not fit it)."""
+        h = self._hashes.get(radius)
+        if h is None:
+            h = self._hashes[radius] = CellHash(self.points, radius)
+        return h
 
     def occupied(self, voxel: float) -> NDArray[np.int64]:
         """Sorted keys of the voxels that hold a point or touch one by a face (built once),
@@ -93,17 +99,12 @@ def occupancy_overlap(
     """(H, 2) approximate shares explained in both directions for H transforms at once: a point
     counts when it falls in a voxel next to an occupied one (distance up to ~2 voxels)."""
     out = np.zeros((len(Ts), 2))
-    for k, (a, b, T) in enumerate(((source, target, Ts), (target, source, None))):
+    Ts = np.ascontiguousarray(Ts, dtype=np.float64)
+    for k, (a, b) in enumerate(((source, target), (target, source))):
         n = min(n_points, len(a))
-        P = a.points[np.linspace(0, len(a) - 1, n).astype(np.int64)]
-        if T is None:  # target -> source: inverse transforms
-            R = np.swapaxes(Ts[:, :3, :3], 1, 2)
-            t = -np.einsum("hij,hj->hi", R, Ts[:, :3, 3])
-        else:
-            R, t = T[:, :3, :3], T[:, :3, 3]
-        q = P @ np.swapaxes(R, 1, 2) + t[:, None, :]  # (H, n, 3); matmul is ~3x faster than einsum here
-        tk, tv = b.occupied_table(voxel)
-        out[:, k] = occupied_hits(np.ascontiguousarray(q), voxel, b.occupancy_origin, tk, tv) / n
+        P = np.ascontiguousarray(a.points[np.linspace(0, len(a) - 1, n).astype(np.int64)], dtype=np.float64)
+        tk, tv = b.occupied_table(voxel)  # target -> source (k = 1): the inverse transforms
+        out[:, k] = occupied_hits(P, Ts, k == 1, voxel, b.occupancy_origin, tk, tv) / n
     return out
 
 
@@ -279,35 +280,43 @@ def align_on_evidence(
 
     Landmark registration is only as good as the landmarks' fits; aligning the evidence points
     turns near misses (rotation right, translation off by a metre) into accurate transforms
-    before they are scored. Nearest neighbours from the target's cell hashes (the KD-tree's
-    answer); deterministic (no threads).
+    before they are scored. Deterministic (no threads).
 
-    The arithmetic is that of the plain numpy fit (mean, ``(a - ca).T @ (b - cb)``, LAPACK SVD,
-    ``V diag(1, 1, s) U^T``) with its overheads removed: ``sum / n`` is what ``mean`` computes,
-    scaling V's last column by s = +-1 is what the product with the diagonal computes, and the
-    sign of the determinant of the orthogonal ``V U^T`` (+-1) is read off the 3 x 3 formula."""
+    Each step is one compiled pass over the target's cell hash (:meth:`CellHash.align_step`:
+    pairs, centroids, cross-covariance and the SVD fit without numpy overheads; verification
+    runs about 45 steps per pair). It computes what :func:`_align_on_evidence_reference` (the
+    numpy fit on KD-tree neighbours) computes, up to rounding in the sums; clouds too far out for
+    the hashes use that reference."""
+    T = np.array(T_target_source, dtype=np.float64)
+    P = np.ascontiguousarray(source.points, dtype=np.float64)
+    for d_max in distances:
+        h = target.cell_hash(d_max)
+        if not h.ok:
+            return _align_on_evidence_reference(source, target, T_target_source, distances)
+        if h.align_step(P, T) < 10:
+            break
+    return T
+
+
+def _align_on_evidence_reference(
+    source: SupportCloud, target: SupportCloud, T_target_source: NDArray[np.float64],
+    distances: tuple[float, ...] = (1.0, 0.6, 0.4, 0.3, 0.3),
+) -> NDArray[np.float64]:
+    """numpy specification of :func:`align_on_evidence` (``target.neighbours``, mean, the
+    ``(a - ca).T @ (b - cb)`` correlation, LAPACK SVD, ``V diag(1, 1, det) U^T``)."""
     T = np.array(T_target_source, dtype=np.float64)
     P = source.points
-    add = np.add.reduce
     for d_max in distances:
         q = P @ T[:3, :3].T + T[:3, 3]
         idx = target.neighbours(q, d_max)
         m = idx >= 0
-        n = int(np.count_nonzero(m))
-        if n < 10:
+        if int(np.count_nonzero(m)) < 10:
             break
         a, b = P[m], target.points[idx[m]]
-        ca, cb = add(a, axis=0) / n, add(b, axis=0) / n
+        ca, cb = a.mean(axis=0), b.mean(axis=0)
         U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
-        V = np.ascontiguousarray(Vt.T)  # the layout of the product V @ diag(...) had
-        M = V @ U.T
-        det = (M[0, 0] * (M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]) - M[0, 1] * (M[1, 0] * M[2, 2] - M[1, 2] * M[2, 0])
-               + M[0, 2] * (M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]))
-        if det < 0:
-            V = V * np.array([1.0, 1.0, -1.0])
-            R = V @ U.T
-        else:
-            R = M
+        D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
+        R = Vt.T @ D @ U.T
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, cb - R @ ca
     return T
