@@ -350,20 +350,16 @@ def test_linear_backtracking_takes_the_same_steps_with_fewer_matvecs():
             assert b.matvecs <= a.matvecs + a.outer_iterations  # a direct mat-vec when many clamp
 
 
-def test_dense_block_path_equals_csr_path(monkeypatch):
+def test_dense_block_path_equals_csr_path():
     """Small, dense active sets run on a dense float32 block: the same selection and u (up to
     rounding) as the CSR rows, on a W1-like graph (30 % dense, planted clique) and on the
     pruned 50 %-outlier reference structure (a clique that is the whole active set)."""
-    import graffmatch.association.clipper as C
-
     rng = np.random.default_rng(11)
     cfg = ClipperConfig(greedy_starts=64, d_schedule="mean", rescale_u0=True, tol_u=1e-3, tol_F=1e-4,
                         line_search="backtracking_linear")
     for W in (planted_graph(600, 30, 0.3, rng), planted_graph(300, 150, 0.05, rng)):
         with_dense = solve_clipper(W, cfg)
-        monkeypatch.setattr(C, "_MAX_DENSE_BYTES", 0)
-        csr_only = solve_clipper(W, cfg)
-        monkeypatch.undo()
+        csr_only = solve_clipper(W, cfg.model_copy(update={"max_dense_block_mb": 0.0}))
         assert np.array_equal(with_dense.selected, csr_only.selected)
         assert np.allclose(with_dense.u, csr_only.u, atol=1e-9)
         assert with_dense.matvecs == csr_only.matvecs
