@@ -1,7 +1,7 @@
 """End-to-end GraffMatcher.match() on KITTI 0->5 and synthetic street landmark scenes W1/W2/W3.
 
     python bench/bench_matcher.py [--json bench/results/matcher.json] [--workloads KITTI,W1,W2]
-                                  [--no-verification]
+                                  [--no-verification] [--max-dense-block-mb MB]
 
 Each workload runs in a fresh subprocess (single thread) so that its peak RSS is its own
 (``peak_rss_mb``: the whole process, imports included; ``rss_increase_mb``: above the RSS
@@ -14,6 +14,7 @@ over the timed calls (not the first call of a case, which may load compiled code
 registration; ``VerificationConfig(enabled=False)``), the configuration of the speed targets.
 ``median_cpu_ms``: the process CPU time of the same calls (one thread), which a loaded machine
 inflates far less than the wall time; ``load_start``/``load_end``: the 1-min load average.
+``--max-dense-block-mb``: the solver's ``max_dense_block_mb`` (default: the matcher's).
 """
 
 from __future__ import annotations
@@ -54,7 +55,8 @@ def kitti_case():
     return SimpleNamespace(source=src, target=tgt, T_target_source=T, true_matches=M)
 
 
-def run_one(name: str, repeats: int, seeds: int, verification: bool = True) -> dict:
+def run_one(name: str, repeats: int, seeds: int, verification: bool = True,
+            max_dense_block_mb: float | None = None) -> dict:
     import time
 
     import numpy as np
@@ -66,7 +68,10 @@ def run_one(name: str, repeats: int, seeds: int, verification: bool = True) -> d
     from graffmatch.verification.config import VerificationConfig
 
     n_poles, n_planes, _, _ = WORKLOADS[name]
-    matcher = GraffMatcher(GraffMatchConfig(verification=VerificationConfig(enabled=verification)))
+    cfg = GraffMatchConfig(verification=VerificationConfig(enabled=verification))
+    if max_dense_block_mb is not None:
+        cfg.solver = cfg.solver.model_copy(update={"max_dense_block_mb": max_dense_block_mb})
+    matcher = GraffMatcher(cfg)
     warm = make_scene_pair(5, 10, seed=0)
     matcher.match(warm.source, warm.target)  # compiled code loaded before the baseline
     cases = [kitti_case()] if name == "KITTI" else [make_scene_pair(n_poles, n_planes, seed=s) for s in range(seeds)]
@@ -114,11 +119,13 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--no-verification", action="store_true", help="time match() without verification")
+    ap.add_argument("--max-dense-block-mb", type=float, default=None, help="the solver's max_dense_block_mb")
     ap.add_argument("--json", default=None)
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        print(json.dumps(run_one(args.child, args.repeats, args.seeds, not args.no_verification)))
+        print(json.dumps(run_one(args.child, args.repeats, args.seeds, not args.no_verification,
+                                 args.max_dense_block_mb)))
         return
     rows = []
     load_start = os.getloadavg()[0]
@@ -131,7 +138,8 @@ def main() -> None:
         reps = str(min(args.repeats, 2) if name == "W3" else 10 * args.repeats if name == "KITTI" else args.repeats)
         out = subprocess.run(
             [sys.executable, __file__, "--child", name, "--repeats", reps, "--seeds", str(ap_seeds.get(name, args.seeds))]
-            + (["--no-verification"] if args.no_verification else []),
+            + (["--no-verification"] if args.no_verification else [])
+            + (["--max-dense-block-mb", str(args.max_dense_block_mb)] if args.max_dense_block_mb is not None else []),
             capture_output=True, text=True, env=env, check=True,
         )
         row = json.loads(out.stdout.strip().splitlines()[-1])
@@ -147,7 +155,7 @@ def main() -> None:
     mach["load_start"], mach["load_end"] = load_start, mach["loadavg_1min"]
     print(f"load average (1 min): {load_start:.2f} at start, {mach['load_end']:.2f} at end")
     write_json(args.json, {"benchmark": "matcher", "machine": mach, "verification": not args.no_verification,
-                           "rows": rows})
+                           "max_dense_block_mb": args.max_dense_block_mb, "rows": rows})
 
 
 if __name__ == "__main__":

@@ -124,7 +124,8 @@ class ClipperConfig(BaseModel):
             "largest dense float32 block of an active set [MB] (a temporary on top of the "
             "graph); a dense active set within it is multiplied without gathers. Larger blocks "
             "pay off on huge graphs: at W3 (m = 11.5k) 80 halves the solve (a 4,090-vertex "
-            "step in a 67 MB block instead of streaming its 18 M CSR non-zeros) for +51 MB peak"
+            "step in a 67 MB block instead of streaming its 18 M CSR non-zeros) for a 97 MB "
+            "higher peak in match() (bench/results/matcher_W3_noverif_dense80_session5.json)"
         ),
     )
 
