@@ -26,6 +26,7 @@ import json
 import os
 import time
 import warnings
+from collections import OrderedDict
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -94,27 +95,59 @@ def _extract_task(args: tuple[Dataset, int, str, str]) -> tuple[int, float]:
     return i, time.perf_counter() - t0
 
 
-def _verify_task(args: tuple[str, str, list[tuple[int, list[tuple[int, float]]]]]) -> list[dict]:
+class _ScanCache:
+    """A worker process's landmark maps and quick-check indices, kept across the chunks it runs.
+
+    Per-scan work (loading the table, building the BEV index) is done once per worker, not once
+    per chunk: a candidate scan recurs in the chunks of many queries. Keyed by the run folder
+    and its database fingerprint (a long-lived Dask/Ray worker may see another run next); the
+    least recently used scans are dropped beyond ``max_scans``.
+    """
+
+    def __init__(self, max_scans: int = 20_000) -> None:
+        self.key: tuple[str, str] | None = None
+        self.max_scans = max_scans
+        self.landmarks: OrderedDict[int, Any] = OrderedDict()
+        self.quick: OrderedDict[int, QuickIndex] = OrderedDict()
+
+    def reset(self, key: tuple[str, str]) -> None:
+        if key != self.key:
+            self.key = key
+            self.landmarks.clear()
+            self.quick.clear()
+
+    def get(self, store: OrderedDict, i: int, make: Callable[[], Any]) -> Any:
+        """``store[i]``, made by ``make()`` on a miss."""
+        if i in store:
+            store.move_to_end(i)
+            return store[i]
+        v = store[i] = make()
+        if len(store) > self.max_scans:
+            store.popitem(last=False)
+        return v
+
+
+_CACHE = _ScanCache()
+
+
+def _verify_task(args: tuple[str, str, str, list[tuple[int, list[tuple[int, float]]]]]) -> list[dict]:
     """Worker: verify the candidates of a chunk of queries; returns one record per query."""
-    out_dir, config_json, chunk = args
+    out_dir, database_key, config_json, chunk = args
     config = LoopDetectorConfig.model_validate_json(config_json)
     det = LoopDetector(config)
-    cache: dict[int, Any] = {}
-    quick: dict[int, QuickIndex] = {}
+    _CACHE.reset((out_dir, database_key + config.quick.model_dump_json()))
     index_s = [0.0]
 
     def lm(i: int):
-        if i not in cache:
-            cache[i] = load_landmarks(Path(out_dir) / LANDMARK_DIR / f"{i:06d}.npz")
-        return cache[i]
+        return _CACHE.get(_CACHE.landmarks, i, lambda: load_landmarks(Path(out_dir) / LANDMARK_DIR / f"{i:06d}.npz"))
 
     def qi(i: int) -> QuickIndex:
         # per-scan precomputation (like the landmarks themselves): timed apart from the query
-        if i not in quick:
-            t = time.perf_counter()
-            quick[i] = quick_index(lm(i), config.quick)
+        t, hit = time.perf_counter(), i in _CACHE.quick
+        v = _CACHE.get(_CACHE.quick, i, lambda: quick_index(lm(i), config.quick))
+        if not hit:
             index_s[0] += time.perf_counter() - t
-        return quick[i]
+        return v
 
     records = []
     for q, cands in chunk:
@@ -326,7 +359,8 @@ def run_loops(
             ex = make_executor(name, workers=workers, address=address)
             n_done = 0
             try:
-                for _, recs in ex.imap_unordered(_verify_task, [(str(out), cfg_json, c) for c in chunks]):
+                tasks = [(str(out), stats["database_key"], cfg_json, c) for c in chunks]
+                for _, recs in ex.imap_unordered(_verify_task, tasks):
                     for rec in recs:
                         f.write(json.dumps(rec) + "\n")
                         done[rec["query"]] = rec

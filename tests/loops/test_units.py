@@ -247,3 +247,24 @@ def test_batched_quick_check_equals_the_numpy_reference():
     assert scores[:3].min() >= 0 and quick_check_many(quick_index(q), [])[0].shape == (0,)
     s_moved = quick_check_many(quick_index(q), idx[:3])[0]
     assert s_moved.min() >= 0.9 * idx[0].size
+
+
+def test_worker_scan_cache_is_bounded_and_reset_per_database():
+    """A worker keeps each scan's landmarks/index across chunks (made once), drops the least
+    recently used beyond its bound, and forgets everything when the run or database changes."""
+    from collections import OrderedDict
+
+    from graffmatch.loops.sequence import _ScanCache
+
+    c = _ScanCache(max_scans=3)
+    c.reset(("run", "db1"))
+    made = []
+    get = lambda i: c.get(c.landmarks, i, lambda: made.append(i) or f"map{i}")  # noqa: E731
+    assert [get(i) for i in (0, 1, 0, 2, 3)] == ["map0", "map1", "map0", "map2", "map3"]
+    assert made == [0, 1, 2, 3] and list(c.landmarks) == [0, 2, 3]  # 1 was the least recently used
+    get(0)
+    assert made == [0, 1, 2, 3]
+    c.reset(("run", "db1"))
+    assert len(c.landmarks) == 3
+    c.reset(("run", "db2"))
+    assert c.landmarks == OrderedDict() and c.quick == OrderedDict()
