@@ -33,6 +33,9 @@ class VerificationConfig(BaseModel):
         "consistent pair of associations become candidates (0: off)",
     )
     pair_max_edges: int = Field(4000, ge=1, description="... from at most this many most consistent pairs")
+    pair_vertical_deg: float = Field(
+        10.0, gt=0, le=90, description="... pole pairs within this of z get the closed-form yaw (z-up frames) [deg]"
+    )
     pair_points: int = Field(128, ge=8, description="... ranked by the occupancy of this many evidence points per scan")
     max_hypotheses: int = Field(8, ge=1, description="distinct hypotheses scored exactly (after a fast first pass over all)")
     merge_deg: float = Field(3.0, gt=0, description="hypotheses closer than this rotation merge [deg]")

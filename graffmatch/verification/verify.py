@@ -35,6 +35,7 @@ from graffmatch.verification.hypotheses import (
     Candidate,
     candidate_cliques,
     consistent_with,
+    line_consensus,
     local_perturbations,
     pair_candidates,
     pair_transforms,
@@ -184,18 +185,19 @@ def _check_translation(verdict: Verdict, source: LandmarkSet, target: LandmarkSe
 def _pair_candidates(source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64],
                      W: sp.csr_matrix, cfg: VerificationConfig, kappa_max: float, ev: Evidence) -> list[Candidate]:
     """Pole-pair transforms (lines-only graphs), ranked by the evidence points they explain
-    (one vectorised occupancy pass over all of them; consensus breaks ties), or by consensus
-    without points: pole consensus alone favours the street's sliding twins (downtown)."""
-    Ts, count = pair_transforms(source, target, associations, W, cfg, kappa_max)
+    (one vectorised occupancy pass over all of them), or by pole consensus without points
+    (which alone favours the street's sliding twins: downtown)."""
+    Ts = pair_transforms(source, target, associations, W, cfg, kappa_max)
     if len(Ts) == 0:
         return []
-    idx = np.arange(len(Ts))
     if ev.has_points:
         occ = occupancy_overlap(ev.source, ev.target, Ts, cfg.inlier_m, cfg.pair_points).mean(axis=1)  # type: ignore[arg-type]
-        order = np.lexsort((idx, -count, -occ))
+        order = np.argsort(-occ, kind="stable")
     else:
-        order = np.lexsort((idx, -count))
-    return pair_candidates(source, target, associations, Ts, order[count[order] >= 2], cfg)
+        count = line_consensus(source, target, associations, Ts, cfg)
+        order = np.argsort(-count, kind="stable")
+        order = order[count[order] >= 2]
+    return pair_candidates(source, target, associations, Ts, order, cfg)
 
 
 def score_hypotheses(

@@ -354,7 +354,7 @@ def test_pair_transforms_contain_the_truth(seed, n_common, n_extra):
     from graffmatch.association.putative import putative_associations
     from graffmatch.geometry.distance import pairwise_distances
     from graffmatch.verification.config import VerificationConfig
-    from graffmatch.verification.hypotheses import pair_transforms
+    from graffmatch.verification.hypotheses import line_consensus, pair_transforms
 
     rng = np.random.default_rng(seed)
     xy = rng.uniform(-25, 25, (n_common + 2 * n_extra, 2))
@@ -367,7 +367,8 @@ def test_pair_transforms_contain_the_truth(seed, n_common, n_extra):
     A = putative_associations(src, tgt, cfg.gating)
     g = build_consistency_graph(pairwise_distances(src, cfg.rho, cfg.variant), pairwise_distances(tgt, cfg.rho, cfg.variant),
                                 A, cfg.epsilon, cfg.sigma, types_i=src.types, types_j=tgt.types)
-    Ts, count = pair_transforms(src, tgt, g.associations, g.weights.tocsr(), VerificationConfig(), 1e3)
+    Ts = pair_transforms(src, tgt, g.associations, g.weights.tocsr(), VerificationConfig(), 1e3)
+    count = line_consensus(src, tgt, g.associations, Ts, VerificationConfig())
     errs = np.array([transform_errors(Ti, T) for Ti in Ts])
     hit = (errs[:, 0] < 1e-4) & (errs[:, 1] < 1e-5)
     assert hit.any()
