@@ -127,9 +127,9 @@ class ClipperConfig(BaseModel):
         description=(
             "largest dense float32 block of an active set [MB] (a temporary on top of the "
             "graph); a dense active set within it is multiplied without gathers. Larger blocks "
-            "pay off on huge graphs: at W3 (m = 11.5k) 80 halves the solve (a 4,090-vertex "
-            "step in a 67 MB block instead of streaming its 18 M CSR non-zeros) for a 97 MB "
-            "higher peak in match() (bench/results/matcher_W3_noverif_dense80_session5.json)"
+            "can pay off on huge graphs: at W3 (m = 11.5k) 80 puts a 4,090-vertex step in a "
+            "67 MB block instead of streaming its 18 M CSR non-zeros; match() CPU 3.6 -> 3.0 s "
+            "for a 64 MB higher peak (bench/results/matcher_W3_noverif_dense80_session5.json)"
         ),
     )
 
@@ -613,13 +613,15 @@ def _ascent_linear(indptr, indices, data, dense, u, rows, d, tol_u, tol_F, max_i
     return inner, matvecs
 
 
-def _homotopy(indptr, indices, data, u0, cfg: ClipperConfig) -> tuple[np.ndarray, int, int, int, float]:
+def _homotopy(indptr, indices, data, u0,
+              cfg: ClipperConfig) -> tuple[np.ndarray, int, int, int, float, np.ndarray]:
     """CLIPPER's outer loop with an active set.
 
     Each homotopy step runs the ascent only on vertices that are in the support of u or whose
     gradient is non-negative (others would be clamped to zero by the projection anyway); the
     set is re-derived from a full-graph gradient after every step, and the loop ends only when
     no excluded vertex has a positive gradient, so the result is a KKT point of the full problem.
+    Returns (u, outer, inner, mat-vecs, d, (W + I) u).
     """
     m = u0.shape[0]
     u = u0 / np.linalg.norm(u0)
@@ -703,7 +705,7 @@ def _homotopy(indptr, indices, data, u0, cfg: ClipperConfig) -> tuple[np.ndarray
         if not np.isfinite(step):
             break
         d += step
-    return u, outer, inner_total, matvecs, float(d)
+    return u, outer, inner_total, matvecs, float(d), Mu
 
 
 @nb.njit(cache=True)
@@ -825,15 +827,21 @@ def clique_density(W: sp.csr_matrix, sel: NDArray[np.int64]) -> float:
 
 @nb.njit(cache=True)
 def _check_graph(indptr, indices, data):
-    """(all weights finite and in [0, 1], some stored entry on the diagonal): one pass, no copy."""
+    """(all weights finite and in [0, 1], some stored entry on the diagonal, the weighted
+    degrees): one pass, no copy."""
     valid = True
     diagonal = False
-    for r in range(indptr.shape[0] - 1):
+    m = indptr.shape[0] - 1
+    wdeg = np.zeros(m)
+    for r in range(m):
+        s = 0.0
         for k in range(indptr[r], indptr[r + 1]):
             x = data[k]
             valid &= x >= 0.0 and x <= 1.0 + 1e-12
             diagonal |= indices[k] == r
-    return valid, diagonal
+            s += x
+        wdeg[r] = s
+    return valid, diagonal, wdeg
 
 
 @nb.njit(cache=True)
@@ -1035,21 +1043,24 @@ def solve_clipper(weights: sp.spmatrix, config: ClipperConfig | None = None,
     W = weights if isinstance(weights, sp.csr_matrix) else sp.csr_matrix(weights)
     if W.shape[0] != W.shape[1]:
         raise InvalidInputError(f"weights must be square, got {W.shape}")
+    wdeg = None  # weighted degrees, from the validation pass
     if W.nnz:
-        valid, diagonal = _check_graph(W.indptr, W.indices, W.data)
+        valid, diagonal, wdeg = _check_graph(W.indptr, W.indices, W.data)
         if not valid:
             raise InvalidInputError("edge weights must be finite and in [0, 1]")
         if diagonal:
             W = W.copy()
             W.setdiag(0)
             W.eliminate_zeros()
+            wdeg = None
     sol = _solve_once(W, cfg, u0)
     if cfg.greedy_starts and W.nnz:
-        _greedy_stage(W, sol, cfg)
+        _greedy_stage(W, sol, cfg, wdeg)
     return sol
 
 
-def _greedy_stage(W: sp.csr_matrix, sol: ClipperSolution, cfg: ClipperConfig) -> None:
+def _greedy_stage(W: sp.csr_matrix, sol: ClipperSolution, cfg: ClipperConfig,
+                  wdeg: NDArray[np.float64] | None = None) -> None:
     """Let greedy cliques compete with CLIPPER's clique (in place on ``sol``), only where they can win.
 
     A clique of k vertices has objective <= 1 + (k - 1) w_max, so one that beats CLIPPER's
@@ -1068,7 +1079,7 @@ def _greedy_stage(W: sp.csr_matrix, sol: ClipperSolution, cfg: ClipperConfig) ->
     work = 0
     objectives = np.zeros(0)
     if keep.size >= k_min:
-        wdeg = _row_sums(indptr, data)[keep]
+        wdeg = (_row_sums(indptr, data) if wdeg is None else wdeg)[keep]
         starts = keep[np.argsort(-wdeg, kind="stable")[: cfg.greedy_starts]].astype(np.int64)
         budget = max(int(cfg.greedy_max_work * W.nnz), cfg.greedy_min_work)
         members, offsets, objectives, work = _greedy_core(
@@ -1112,13 +1123,13 @@ def _solve_once(W: sp.csr_matrix, cfg: ClipperConfig,
     start = np.ascontiguousarray(start[keep])
     if not np.any(start > 0):
         raise InvalidInputError("start vector must have a positive entry")
-    uk, outer, inner, nmv, d = _homotopy(indptr, indices, data, start, cfg)
+    uk, outer, inner, nmv, d, Muk = _homotopy(indptr, indices, data, start, cfg)
     u = np.zeros(m)
     u[keep] = uk
-    # u^T (W + I) u by scattering u's support (numba): scipy's W @ u would first cast float32
-    # weights to float64, a full copy of the graph (+330 MB at m = 11.5k).
-    Mu, Cu = np.empty(m), np.empty(m)
-    _matvecs_from_support(W.indptr, W.indices, W.data, u, np.flatnonzero(u > 0.0), Mu, Cu)
+    # u^T (W + I) u from the homotopy's last (W + I) u: u's support lies in ``keep``, so those
+    # entries are the whole graph's (same terms, same order) and the others meet u = 0.
+    Mu = np.zeros(m)
+    Mu[keep] = Muk
     score = float(u @ Mu)
     if cfg.rounding == "dsd_heu":
         k = max(1, round(score))
