@@ -229,6 +229,45 @@ def _align_step(P: NDArray[np.float64], T: NDArray[np.float64], spts: NDArray[np
 
 
 @nb.njit(cache=True)
+def _moved_hits(P: NDArray[np.float64], Ts: NDArray[np.float64], inverse: bool, spts: NDArray[np.float64],
+                h: float, inv_h: float, origin: NDArray[np.int64], dims: NDArray[np.int64],
+                dense: NDArray[np.int32], tk: NDArray[np.int64], tv: NDArray[np.int64],
+                starts: NDArray[np.int64], r2: float) -> NDArray[np.int64]:
+    """(H,) how many of the points ``P`` moved by each transform (its inverse when ``inverse``)
+    have a cloud point with squared distance < r2."""
+    H = Ts.shape[0]
+    out = np.zeros(H, np.int64)
+    R = np.empty((3, 3))
+    t = np.empty(3)
+    for hh in range(H):
+        _moved_frame(Ts, hh, inverse, R, t)
+        cnt = 0
+        for a in range(P.shape[0]):
+            px, py, pz = P[a, 0], P[a, 1], P[a, 2]
+            qx = (R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz) + t[0]
+            qy = (R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz) + t[1]
+            qz = (R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz) + t[2]
+            if _nearest_in_grid(qx, qy, qz, spts, h, inv_h, origin, dims, dense, tk, tv, starts, r2, False) >= 0:
+                cnt += 1
+        out[hh] = cnt
+    return out
+
+
+@nb.njit(cache=True, inline="always")
+def _moved_frame(Ts: NDArray[np.float64], hh: int, inverse: bool, R: NDArray[np.float64],
+                 t: NDArray[np.float64]) -> None:
+    """Rotation and translation of transform ``hh`` of ``Ts``, or of its inverse (R^T, -R^T t)."""
+    for i in range(3):
+        for j in range(3):
+            R[i, j] = Ts[hh, j, i] if inverse else Ts[hh, i, j]
+    for i in range(3):
+        if inverse:
+            t[i] = -(R[i, 0] * Ts[hh, 0, 3] + R[i, 1] * Ts[hh, 1, 3] + R[i, 2] * Ts[hh, 2, 3])
+        else:
+            t[i] = Ts[hh, i, 3]
+
+
+@nb.njit(cache=True)
 def occupied_hits(P: NDArray[np.float64], Ts: NDArray[np.float64], inverse: bool, voxel: float,
                   origin: NDArray[np.float64], tk: NDArray[np.int64], tv: NDArray[np.int64]) -> NDArray[np.int64]:
     """(H,) how many of the points ``P`` (n, 3) moved by each of H transforms ``Ts`` (by their
@@ -240,14 +279,7 @@ def occupied_hits(P: NDArray[np.float64], Ts: NDArray[np.float64], inverse: bool
     R = np.empty((3, 3))
     t = np.empty(3)
     for hh in range(H):
-        for i in range(3):
-            for j in range(3):
-                R[i, j] = Ts[hh, j, i] if inverse else Ts[hh, i, j]
-        for i in range(3):
-            if inverse:  # R^T (p - t) = R^T p - R^T t
-                t[i] = -(R[i, 0] * Ts[hh, 0, 3] + R[i, 1] * Ts[hh, 1, 3] + R[i, 2] * Ts[hh, 2, 3])
-            else:
-                t[i] = Ts[hh, i, 3]
+        _moved_frame(Ts, hh, inverse, R, t)
         cnt = 0
         for a in range(n):
             px, py, pz = P[a, 0], P[a, 1], P[a, 2]
@@ -314,6 +346,14 @@ class CellHash:
         _grid_query(q, self.points, self.order, self.h, self.inv_h, self.origin, self.dims, self.dense,
                     self.tk, self.tv, self.starts, self.radius * self.radius, nearest, out)
         return out
+
+    def hits(self, P: NDArray[np.float64], Ts: NDArray[np.float64], inverse: bool = False) -> NDArray[np.int64]:
+        """(H,) how many rows of ``P`` moved by each of the (H, 4, 4) ``Ts`` (their inverses when
+        ``inverse``) have a point of this cloud strictly within the radius: exact overlap counts
+        of many hypotheses in one compiled call."""
+        return _moved_hits(np.ascontiguousarray(P, dtype=np.float64), np.ascontiguousarray(Ts, dtype=np.float64),
+                           inverse, self.points, self.h, self.inv_h, self.origin, self.dims, self.dense, self.tk,
+                           self.tv, self.starts, self.radius * self.radius)
 
     def align_step(self, P: NDArray[np.float64], T: NDArray[np.float64], min_pairs: int = 10) -> int:
         """One nearest-neighbour rigid alignment step of ``P`` (C-contiguous float64) onto this

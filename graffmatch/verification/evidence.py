@@ -259,10 +259,34 @@ def cloud_from_points(points: NDArray, voxel: float, max_points: int) -> Support
     return SupportCloud(P)
 
 
+def point_overlaps(
+    source: SupportCloud, target: SupportCloud, Ts: NDArray[np.float64], inlier_m: float
+) -> NDArray[np.float64]:
+    """(H, 2): :func:`point_overlap` of H stacked transforms, in two compiled calls (one per
+    direction) when both clouds fit their cell hashes."""
+    Ts = np.ascontiguousarray(Ts, dtype=np.float64).reshape(-1, 4, 4)
+    h_t, h_s = target.cell_hash(inlier_m), source.cell_hash(inlier_m)
+    if not (h_t.ok and h_s.ok):
+        return np.array([_point_overlap_reference(source, target, T, inlier_m) for T in Ts]).reshape(-1, 2)
+    out = np.empty((len(Ts), 2))
+    out[:, 0] = h_t.hits(source.points, Ts) / len(source)
+    out[:, 1] = h_s.hits(target.points, Ts, inverse=True) / len(target)
+    return out
+
+
 def point_overlap(
     source: SupportCloud, target: SupportCloud, T_target_source: NDArray[np.float64], inlier_m: float
 ) -> tuple[float, float]:
     """(source share explained by target, target share explained by source) under T (4x4)."""
+    parts = point_overlaps(source, target, T_target_source, inlier_m)[0]
+    return float(parts[0]), float(parts[1])
+
+
+def _point_overlap_reference(
+    source: SupportCloud, target: SupportCloud, T_target_source: NDArray[np.float64], inlier_m: float
+) -> tuple[float, float]:
+    """numpy :func:`point_overlap` (moved points, then ``neighbours``): the path for clouds too
+    far out for the cell hashes, and the specification of the compiled counts."""
     R, t = T_target_source[:3, :3], T_target_source[:3, 3]
     q = source.points @ R.T + t
     i_st = target.neighbours(q, inlier_m, nearest=False)

@@ -21,7 +21,7 @@ from graffmatch.association.clipper import ClipperConfig, solve_clipper
 from graffmatch.association.cliques import clique_objective, greedy_cliques
 from graffmatch.errors import DegenerateGeometryError
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
-from graffmatch.registration.closed_form import register_batch
+from graffmatch.registration.closed_form import _directions_of, register_batch
 from graffmatch.verification.config import VerificationConfig
 
 
@@ -41,8 +41,8 @@ def residuals(
     R, t = T_target_source[:3, :3], T_target_source[:3, 3]
     a, b = associations[:, 0], associations[:, 1]
     ts = source.types[a]
-    ds = source.directions[a] @ R.T
-    dt = target.directions[b]
+    ds = _directions_of(source)[a] @ R.T  # (cached per set: verification calls this 3-4 times)
+    dt = _directions_of(target)[b]
     r = target.anchors[b] - (source.anchors[a] @ R.T + t)
     along = np.einsum("ij,ij->i", dt, r)
     off = np.where(
@@ -251,7 +251,7 @@ def translation_redundancy(
         e = np.array([1.0, 0.0, 0.0])
         return 0.0, e, 0.0, e
     b = associations[:, 1]
-    ty, d = target.types[b], target.directions[b]
+    ty, d = target.types[b], _directions_of(target)[b]
     P = np.einsum("ki,kj->kij", d, d)
     C = np.where((ty == LandmarkType.PLANE)[:, None, None], P,
                  np.where((ty == LandmarkType.LINE)[:, None, None], np.eye(3) - P, np.eye(3)))

@@ -29,6 +29,7 @@ from graffmatch.verification.evidence import (
     landmark_overlap,
     occupancy_overlap,
     point_overlap,
+    point_overlaps,
     prepared_support,
 )
 from graffmatch.verification.hypotheses import (
@@ -71,21 +72,22 @@ def _register(
     cands = [c for c in cands if len(c.vertices) >= 2]
     if not cands:
         return []
-    groups = np.concatenate([np.full(len(c.vertices), i) for i, c in enumerate(cands)])
-    verts = np.concatenate([c.vertices for c in cands])
+    lengths = np.array([len(c.vertices) for c in cands], dtype=np.int64)
+    groups = np.repeat(np.arange(len(cands)), lengths)
+    A = assoc[np.concatenate([c.vertices for c in cands])]
     try:
-        b = register_batch(source, target, assoc[verts], groups, None, kappa_max, len(cands))
+        b = register_batch(source, target, A, groups, None, kappa_max, len(cands))
     except DegenerateGeometryError:
         return []
-    bounds = np.r_[0, np.cumsum([len(c.vertices) for c in cands])]
-    objectives = clique_objectives(W, [c.vertices for c in cands])
+    bounds = np.r_[0, np.cumsum(lengths)].tolist()
+    objectives = clique_objectives(W, [c.vertices for c in cands]).tolist()
+    kappa, degenerate = b.kappa.tolist(), b.degenerate.tolist()
     hyps = []
-    for i, c in enumerate(cands):
-        h = Hypothesis(b.T_target_source[i], assoc[c.vertices], c.origin, float(objectives[i]),
-                       float(b.kappa[i]), bool(b.degenerate[i]))
-        sl = slice(bounds[i], bounds[i + 1])
+    for i, c in enumerate(cands):  # per-hypothesis arrays are views of the batch's
+        lo, hi = bounds[i], bounds[i + 1]
+        h = Hypothesis(b.T_target_source[i], A[lo:hi], c.origin, objectives[i], kappa[i], degenerate[i])
         h.info["vertices"] = c.vertices
-        h.info["residuals"] = (b.offset_residuals[sl], b.angle_residuals_deg[sl])
+        h.info["residuals"] = (b.offset_residuals[lo:hi], b.angle_residuals_deg[lo:hi])
         hyps.append(h)
     return hyps
 
@@ -146,10 +148,11 @@ def _local_search(lead: Hypothesis, ev: Evidence, cfg: VerificationConfig) -> No
     Ts = local_perturbations(T0, centre, cfg.local_search_step_m, cfg.local_search_m, cfg.local_search_deg)
     occ = occupancy_overlap(src, tgt, Ts, cfg.inlier_m).mean(axis=1)  # type: ignore[arg-type]
     starts = [T0, *Ts[np.argsort(-occ, kind="stable")[: cfg.local_search_top]]]
+    aligned = np.stack([align_on_evidence(src, tgt, T_start, cfg.local_search_distances)  # type: ignore[arg-type]
+                        for T_start in starts])
+    all_parts = point_overlaps(src, tgt, aligned, cfg.inlier_m)  # type: ignore[arg-type]
     best_score, best_T, best_parts = lead.score + cfg.local_search_gain, None, None
-    for T_start in starts:
-        T = align_on_evidence(src, tgt, T_start, cfg.local_search_distances)  # type: ignore[arg-type]
-        parts = point_overlap(src, tgt, T, cfg.inlier_m)  # type: ignore[arg-type]
+    for T, parts in zip(aligned, all_parts, strict=True):
         score = 0.5 * (parts[0] + parts[1])
         if score > best_score:
             best_score, best_T, best_parts = score, T, parts
@@ -215,7 +218,7 @@ def score_hypotheses(
         for h, c in zip(hyps, counts[0], strict=True):
             h.info["landmarks_explained"] = int(c)
     elif exact:
-        parts = np.array([point_overlap(ev.source, ev.target, T, cfg.inlier_m) for T in Ts])  # type: ignore[arg-type]
+        parts = point_overlaps(ev.source, ev.target, Ts, cfg.inlier_m)  # type: ignore[arg-type]
     else:
         parts = occupancy_overlap(ev.source, ev.target, Ts, cfg.inlier_m)  # type: ignore[arg-type]
     for h, p in zip(hyps, parts, strict=True):
