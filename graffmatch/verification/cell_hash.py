@@ -33,6 +33,7 @@ _GRID_BITS = 20
 _GRID_LIM = 1 << _GRID_BITS  # cells per axis a cell hash can key
 _GRID_MARGIN = 1e-5  # cells are this much wider than twice the radius: rounding never hides a neighbour
 _DENSE_MAX = 1 << 19  # largest dense cell table (int32, 2 MB); bigger boxes use the hash
+NEAR_BITS = 1 << 23  # largest 'near' bitmap of a cell hash (1 MB); bigger boxes search every query
 
 
 @nb.njit(cache=True, inline="always")
@@ -157,44 +158,95 @@ def _grid_query(q: NDArray[np.float64], spts: NDArray[np.float64], order: NDArra
                 nearest: bool, out: NDArray[np.int64]) -> None:
     """For each query point, the index of its nearest cloud point with squared distance < r2
     (-1 if none); ``nearest=False``: of any such point (existence only)."""
+    # Results go to a local array first: a store into an argument array inside the search loop
+    # (which might alias the grid's arrays) makes LLVM reload the grid on every point (~4x slower).
+    found = np.empty(q.shape[0], np.int64)
     for a in range(q.shape[0]):
-        bi = _nearest_in_grid(q[a, 0], q[a, 1], q[a, 2], spts, h, inv_h, origin, dims, dense, tk, tv,
-                              starts, r2, nearest)
+        found[a] = _nearest_in_grid(q[a, 0], q[a, 1], q[a, 2], spts, h, inv_h, origin, dims, dense, tk, tv,
+                                    starts, r2, nearest)
+    for a in range(q.shape[0]):
+        bi = found[a]
         out[a] = order[bi] if bi >= 0 else -1
+
+
+@nb.njit(cache=True)
+def _moved_near(P: NDArray[np.float64], r00: float, r01: float, r02: float, t0: float, r10: float, r11: float,
+                r12: float, t1: float, r20: float, r21: float, r22: float, t2: float, near: NDArray[np.uint8],
+                near_lo: NDArray[np.int64], near_dims: NDArray[np.int64], near_inv: float,
+                q: NDArray[np.float64], cand: NDArray[np.int64]) -> int:
+    """Move the rows of ``P`` by (R, t) and keep those inside the ``near`` bitmap (every row when
+    it is empty): their moved coordinates go to ``q[:m]`` and their rows to ``cand[:m]``; returns
+    m. (Kept out of the search loops: inside them this test made LLVM compile the search ~3x
+    slower.)"""
+    use_near = len(near) > 0
+    lo0, lo1, lo2 = near_lo[0], near_lo[1], near_lo[2]
+    n0, n1, n2 = near_dims[0], near_dims[1], near_dims[2]
+    m = 0
+    for a in range(P.shape[0]):
+        px, py, pz = P[a, 0], P[a, 1], P[a, 2]
+        qx = (r00 * px + r01 * py + r02 * pz) + t0
+        qy = (r10 * px + r11 * py + r12 * pz) + t1
+        qz = (r20 * px + r21 * py + r22 * pz) + t2
+        if use_near:
+            vx = np.floor(qx * near_inv) - lo0
+            vy = np.floor(qy * near_inv) - lo1
+            vz = np.floor(qz * near_inv) - lo2
+            if not (vx >= 0.0 and vx < n0 and vy >= 0.0 and vy < n1 and vz >= 0.0 and vz < n2):
+                continue  # (NaN too)
+            f = (int(vx) * n1 + int(vy)) * n2 + int(vz)
+            if not near[f >> 3] & (1 << (f & 7)):
+                continue
+        q[m, 0] = qx
+        q[m, 1] = qy
+        q[m, 2] = qz
+        cand[m] = a
+        m += 1
+    return m
 
 
 @nb.njit(cache=True)
 def _align_step(P: NDArray[np.float64], T: NDArray[np.float64], spts: NDArray[np.float64], h: float,
                 inv_h: float, origin: NDArray[np.int64], dims: NDArray[np.int64], dense: NDArray[np.int32],
                 tk: NDArray[np.int64], tv: NDArray[np.int64], starts: NDArray[np.int64], r2: float,
-                min_pairs: int, rows: NDArray[np.int64]) -> int:
+                near: NDArray[np.uint8], near_lo: NDArray[np.int64], near_dims: NDArray[np.int64],
+                near_inv: float, min_pairs: int) -> int:
     """One point-to-point step: pair each row of ``P`` moved by ``T`` with its nearest cloud
     point (squared distance < r2), then replace ``T`` by the closed-form rigid fit of the pairs
     (centroids, cross-covariance, SVD with the reflection fixed). Returns the number of pairs;
-    fewer than ``min_pairs``: ``T`` is left as it was."""
-    R = T[:3, :3]
+    fewer than ``min_pairs``: ``T`` is left as it was. Points outside the ``near`` bitmap are
+    not searched (see :func:`_moved_hits`)."""
+    r00, r01, r02, t0 = T[0, 0], T[0, 1], T[0, 2], T[0, 3]
+    r10, r11, r12, t1 = T[1, 0], T[1, 1], T[1, 2], T[1, 3]
+    r20, r21, r22, t2 = T[2, 0], T[2, 1], T[2, 2], T[2, 3]
+    n_p = P.shape[0]
+    q = np.empty((n_p, 3))
+    cand = np.empty(n_p, np.int64)
+    m = _moved_near(P, r00, r01, r02, t0, r10, r11, r12, t1, r20, r21, r22, t2, near, near_lo, near_dims,
+                    near_inv, q, cand)
+    rows = np.full(n_p, -1, np.int64)  # local: no store into an argument in the search loop
+    found = np.empty(m, np.int64)
+    for k in range(m):  # the search alone in this loop: LLVM keeps the grid in registers
+        found[k] = _nearest_in_grid(q[k, 0], q[k, 1], q[k, 2], spts, h, inv_h, origin, dims, dense, tk, tv, starts,
+                                    r2, True)
+    for k in range(m):
+        rows[cand[k]] = found[k]
     n = 0
-    sa = np.zeros(3)
-    sb = np.zeros(3)
+    sa0 = sa1 = sa2 = sb0 = sb1 = sb2 = 0.0
     for a in range(P.shape[0]):
-        px, py, pz = P[a, 0], P[a, 1], P[a, 2]
-        qx = (R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz) + T[0, 3]
-        qy = (R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz) + T[1, 3]
-        qz = (R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz) + T[2, 3]
-        bi = _nearest_in_grid(qx, qy, qz, spts, h, inv_h, origin, dims, dense, tk, tv, starts, r2, True)
-        rows[a] = bi
+        bi = rows[a]
         if bi >= 0:
+            px, py, pz = P[a, 0], P[a, 1], P[a, 2]
             n += 1
-            sa[0] += px
-            sa[1] += py
-            sa[2] += pz
-            sb[0] += spts[bi, 0]
-            sb[1] += spts[bi, 1]
-            sb[2] += spts[bi, 2]
+            sa0 += px
+            sa1 += py
+            sa2 += pz
+            sb0 += spts[bi, 0]
+            sb1 += spts[bi, 1]
+            sb2 += spts[bi, 2]
     if n < min_pairs:
         return n
-    ca = sa / n
-    cb = sb / n
+    ca = np.array([sa0, sa1, sa2]) / n
+    cb = np.array([sb0, sb1, sb2]) / n
     H = np.zeros((3, 3))
     for a in range(P.shape[0]):
         bi = rows[a]
@@ -232,21 +284,30 @@ def _align_step(P: NDArray[np.float64], T: NDArray[np.float64], spts: NDArray[np
 def _moved_hits(P: NDArray[np.float64], Ts: NDArray[np.float64], inverse: bool, spts: NDArray[np.float64],
                 h: float, inv_h: float, origin: NDArray[np.int64], dims: NDArray[np.int64],
                 dense: NDArray[np.int32], tk: NDArray[np.int64], tv: NDArray[np.int64],
-                starts: NDArray[np.int64], r2: float) -> NDArray[np.int64]:
+                starts: NDArray[np.int64], r2: float, near: NDArray[np.uint8], near_lo: NDArray[np.int64],
+                near_dims: NDArray[np.int64], near_inv: float) -> NDArray[np.int64]:
     """(H,) how many of the points ``P`` moved by each transform (its inverse when ``inverse``)
-    have a cloud point with squared distance < r2."""
-    H = Ts.shape[0]
+    have a cloud point with squared distance < r2. Points outside the ``near`` bitmap
+    (:meth:`CellHash.near_bitmap`) have none and are not searched: most points of a wrong
+    hypothesis. (The bitmap test runs in a pass of its own: inside the search loop it made LLVM
+    compile the search ~3x slower.)"""
+    H, n = Ts.shape[0], P.shape[0]
     out = np.zeros(H, np.int64)
     R = np.empty((3, 3))
     t = np.empty(3)
+    q = np.empty((n, 3))
+    cand = np.empty(n, np.int64)
     for hh in range(H):
         _moved_frame(Ts, hh, inverse, R, t)
+        r00, r01, r02, t0 = R[0, 0], R[0, 1], R[0, 2], t[0]
+        r10, r11, r12, t1 = R[1, 0], R[1, 1], R[1, 2], t[1]
+        r20, r21, r22, t2 = R[2, 0], R[2, 1], R[2, 2], t[2]
+        # moved points next to the cloud first, the search in a loop of its own
+        m = _moved_near(P, r00, r01, r02, t0, r10, r11, r12, t1, r20, r21, r22, t2, near, near_lo, near_dims,
+                        near_inv, q, cand)
         cnt = 0
-        for a in range(P.shape[0]):
-            px, py, pz = P[a, 0], P[a, 1], P[a, 2]
-            qx = (R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz) + t[0]
-            qy = (R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz) + t[1]
-            qz = (R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz) + t[2]
+        for a in range(m):
+            qx, qy, qz = q[a, 0], q[a, 1], q[a, 2]
             if _nearest_in_grid(qx, qy, qz, spts, h, inv_h, origin, dims, dense, tk, tv, starts, r2, False) >= 0:
                 cnt += 1
         out[hh] = cnt
@@ -267,29 +328,72 @@ def _moved_frame(Ts: NDArray[np.float64], hh: int, inverse: bool, R: NDArray[np.
             t[i] = Ts[hh, i, 3]
 
 
+OCCUPANCY_BITS = 1 << 24  # largest occupancy bitmap (2 MB); larger boxes use the hash table
+
+
+def occupancy_lookup(keys: NDArray[np.int64]) -> tuple:
+    """What :func:`occupied_hits` looks the keys of :func:`voxel_keys` up in: (hash keys, hash
+    values, bitmap, bitmap low corner, bitmap dims). The bitmap covers the keys' box (one bit a
+    voxel: ~0.1 MB for a courtyard scan at 0.3 m, in cache) and is empty when the box is larger
+    than ``OCCUPANCY_BITS``; then the hash table answers."""
+    empty = np.zeros(0, np.int64)
+    if len(keys) == 0:
+        return empty, empty, np.zeros(0, np.uint8), np.zeros(3, np.int64), np.zeros(3, np.int64)
+    mask = (1 << _KEY_BITS) - 1
+    ijk = np.stack([(keys >> (2 * _KEY_BITS)) & mask, (keys >> _KEY_BITS) & mask, keys & mask], axis=1) - _KEY_OFF
+    lo = ijk.min(axis=0)
+    dims = ijk.max(axis=0) - lo + 1
+    if float(np.prod(dims.astype(float))) > OCCUPANCY_BITS:
+        tk, tv = hash_table(keys)
+        return tk, tv, np.zeros(0, np.uint8), lo, dims
+    flat = ((ijk[:, 0] - lo[0]) * dims[1] + (ijk[:, 1] - lo[1])) * dims[2] + (ijk[:, 2] - lo[2])
+    bits = np.zeros((int(np.prod(dims)) + 7) // 8, np.uint8)
+    np.bitwise_or.at(bits, flat >> 3, (1 << (flat & 7)).astype(np.uint8))
+    return empty, empty, bits, lo, dims
+
+
 @nb.njit(cache=True)
 def occupied_hits(P: NDArray[np.float64], Ts: NDArray[np.float64], inverse: bool, voxel: float,
-                  origin: NDArray[np.float64], tk: NDArray[np.int64], tv: NDArray[np.int64]) -> NDArray[np.int64]:
+                  origin: NDArray[np.float64], tk: NDArray[np.int64], tv: NDArray[np.int64],
+                  bits: NDArray[np.uint8], lo: NDArray[np.int64], dims: NDArray[np.int64]) -> NDArray[np.int64]:
     """(H,) how many of the points ``P`` (n, 3) moved by each of H transforms ``Ts`` (by their
-    inverses when ``inverse``) fall in an occupied voxel (the keys of :func:`voxel_keys`). One
-    pass, no (H, n, 3) array of moved points."""
+    inverses when ``inverse``) fall in an occupied voxel (the keys of :func:`voxel_keys`, looked
+    up in :func:`occupancy_lookup`'s bitmap, or its hash table). One pass, no (H, n, 3) array of
+    moved points."""
     H, n = Ts.shape[0], P.shape[0]
     out = np.zeros(H, np.int64)
     bound = float((1 << (_KEY_BITS - 1)) - 2)
+    use_bits = len(bits) > 0
+    lo0, lo1, lo2 = lo[0], lo[1], lo[2]
+    n0, n1, n2 = dims[0], dims[1], dims[2]
+    o0, o1, o2 = origin[0], origin[1], origin[2]
     R = np.empty((3, 3))
     t = np.empty(3)
     for hh in range(H):
         _moved_frame(Ts, hh, inverse, R, t)
+        r00, r01, r02, t0 = R[0, 0], R[0, 1], R[0, 2], t[0]
+        r10, r11, r12, t1 = R[1, 0], R[1, 1], R[1, 2], t[1]
+        r20, r21, r22, t2 = R[2, 0], R[2, 1], R[2, 2], t[2]
         cnt = 0
         for a in range(n):
             px, py, pz = P[a, 0], P[a, 1], P[a, 2]
-            qx = (R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz) + t[0]
-            qy = (R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz) + t[1]
-            qz = (R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz) + t[2]
-            i = np.floor(qx / voxel) - origin[0]
-            j = np.floor(qy / voxel) - origin[1]
-            k = np.floor(qz / voxel) - origin[2]
+            qx = (r00 * px + r01 * py + r02 * pz) + t0
+            qy = (r10 * px + r11 * py + r12 * pz) + t1
+            qz = (r20 * px + r21 * py + r22 * pz) + t2
+            i = np.floor(qx / voxel) - o0
+            j = np.floor(qy / voxel) - o1
+            k = np.floor(qz / voxel) - o2
             if not (abs(i) < bound and abs(j) < bound and abs(k) < bound):
+                continue
+            if use_bits:
+                x = int(i) - lo0
+                y = int(j) - lo1
+                z = int(k) - lo2
+                if x < 0 or y < 0 or z < 0 or x >= n0 or y >= n1 or z >= n2:
+                    continue
+                f = (x * n1 + y) * n2 + z
+                if bits[f >> 3] & (1 << (f & 7)):
+                    cnt += 1
                 continue
             key = (((int(i) + _KEY_OFF) << (2 * _KEY_BITS)) | ((int(j) + _KEY_OFF) << _KEY_BITS)
                    | (int(k) + _KEY_OFF))
@@ -308,6 +412,7 @@ class CellHash:
 
     def __init__(self, points: NDArray[np.float64], radius: float) -> None:
         self.radius = float(radius)
+        self._near: tuple | None = None
         self.h = 2.0 * self.radius * (1.0 + _GRID_MARGIN)
         self.inv_h = 1.0 / self.h
         c = np.floor(points * self.inv_h)
@@ -338,13 +443,18 @@ class CellHash:
             self.dense = np.zeros(0, np.int32)
             self.tk, self.tv = hash_table(ks[first])
 
+    def _grid(self) -> tuple:
+        """The arguments the kernels take for this grid (after the query points)."""
+        return (self.points, self.h, self.inv_h, self.origin, self.dims, self.dense, self.tk, self.tv,
+                self.starts, self.radius * self.radius)
+
     def query(self, q: NDArray[np.float64], nearest: bool = True) -> NDArray[np.int64]:
         """Index of the nearest point strictly within the radius (-1: none); ``nearest=False``:
         any point within the radius (enough to count explained points)."""
         q = np.ascontiguousarray(q, dtype=np.float64).reshape(-1, 3)
         out = np.empty(len(q), np.int64)
-        _grid_query(q, self.points, self.order, self.h, self.inv_h, self.origin, self.dims, self.dense,
-                    self.tk, self.tv, self.starts, self.radius * self.radius, nearest, out)
+        g = self._grid()
+        _grid_query(q, g[0], self.order, *g[1:], nearest, out)
         return out
 
     def hits(self, P: NDArray[np.float64], Ts: NDArray[np.float64], inverse: bool = False) -> NDArray[np.int64]:
@@ -352,13 +462,33 @@ class CellHash:
         ``inverse``) have a point of this cloud strictly within the radius: exact overlap counts
         of many hypotheses in one compiled call."""
         return _moved_hits(np.ascontiguousarray(P, dtype=np.float64), np.ascontiguousarray(Ts, dtype=np.float64),
-                           inverse, self.points, self.h, self.inv_h, self.origin, self.dims, self.dense, self.tk,
-                           self.tv, self.starts, self.radius * self.radius)
+                           inverse, *self._grid(), *self.near_bitmap())
+
+    def near_bitmap(self) -> tuple:
+        """(bits, low corner, dims, 1 / side) of a bitmap of voxels of side ``radius (1 + 1e-6)``:
+        those within one voxel (27-neighbourhood) of a voxel holding a point. A point closer than
+        the radius to q lies in a voxel next to q's (the 1e-6 margin is far above the rounding
+        of voxel coordinates below 2^28), so a query outside the bitmap has no neighbour. Built
+        on first use; empty (every query searched) when the box has more than ``NEAR_BITS`` voxels."""
+        if self._near is None:
+            v = self.radius * (1.0 + 1e-6)
+            base = np.floor(self.points * (1.0 / v)).astype(np.int64)
+            lo = base.min(axis=0) - 1
+            dims = base.max(axis=0) - lo + 2
+            if float(np.prod(dims.astype(float))) > NEAR_BITS:  # too large: no filter
+                self._near = (np.zeros(0, np.uint8), lo, dims, 1.0 / v)
+                return self._near
+            off = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), axis=-1).reshape(-1, 3)
+            cells = np.unique(base - lo, axis=0)
+            nb_ = (cells[:, None, :] + off[None]).reshape(-1, 3)
+            flat = (nb_[:, 0] * dims[1] + nb_[:, 1]) * dims[2] + nb_[:, 2]
+            bits = np.zeros((int(np.prod(dims)) + 7) // 8, np.uint8)
+            np.bitwise_or.at(bits, flat >> 3, (1 << (flat & 7)).astype(np.uint8))
+            self._near = (bits, lo, dims, 1.0 / v)
+        return self._near
 
     def align_step(self, P: NDArray[np.float64], T: NDArray[np.float64], min_pairs: int = 10) -> int:
         """One nearest-neighbour rigid alignment step of ``P`` (C-contiguous float64) onto this
         cloud within the radius, updating the 4 x 4 ``T`` (C-contiguous float64) in place; see
         :func:`_align_step`. Returns the number of pairs (``T`` unchanged below ``min_pairs``)."""
-        rows = np.empty(len(P), np.int64)
-        return int(_align_step(P, T, self.points, self.h, self.inv_h, self.origin, self.dims, self.dense,
-                               self.tk, self.tv, self.starts, self.radius * self.radius, min_pairs, rows))
+        return int(_align_step(P, T, *self._grid(), *self.near_bitmap(), min_pairs))

@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
-from graffmatch.verification.cell_hash import CellHash, hash_table, occupied_hits, voxel_keys
+from graffmatch.verification.cell_hash import CellHash, occupancy_lookup, occupied_hits, voxel_keys
 
 
 @dataclass
@@ -85,11 +85,12 @@ class SupportCloud:
             self._occ_table = None
         return self.occupancy
 
-    def occupied_table(self, voxel: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        """The occupied voxel keys as a hash table (for :func:`occupied_hits`)."""
+    def occupied_table(self, voxel: float) -> tuple:
+        """The occupied voxel keys for :func:`occupied_hits`: a bitmap over their box when it
+        has at most ``OCCUPANCY_BITS`` voxels (a few cycles a lookup), else a hash table."""
         occ = self.occupied(voxel)
         if self._occ_table is None:
-            self._occ_table = hash_table(occ)
+            self._occ_table = occupancy_lookup(occ)
         return self._occ_table
 
 
@@ -103,8 +104,8 @@ def occupancy_overlap(
     for k, (a, b) in enumerate(((source, target), (target, source))):
         n = min(n_points, len(a))
         P = np.ascontiguousarray(a.points[np.linspace(0, len(a) - 1, n).astype(np.int64)], dtype=np.float64)
-        tk, tv = b.occupied_table(voxel)  # target -> source (k = 1): the inverse transforms
-        out[:, k] = occupied_hits(P, Ts, k == 1, voxel, b.occupancy_origin, tk, tv) / n
+        table = b.occupied_table(voxel)  # target -> source (k = 1): the inverse transforms
+        out[:, k] = occupied_hits(P, Ts, k == 1, voxel, b.occupancy_origin, *table) / n
     return out
 
 

@@ -52,6 +52,27 @@ def test_cell_hash_equals_kdtree(seed, n, scale, offset, r):
     assert h.query(np.array([[np.nan, 0.0, 0.0]]))[0] == -1  # (the KD-tree refuses NaN)
 
 
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), scale=st.sampled_from([0.5, 5.0, 50.0]),
+       offset=st.sampled_from([0.0, -37.3, 5e4]), r=st.floats(0.05, 2.0))
+def test_moved_hit_counts_equal_kdtree(seed, scale, offset, r):
+    """CellHash.hits (moved points, the 'near' bitmap filter, then the search) counts exactly
+    the points the KD-tree finds within r, for transforms and their inverses."""
+    rng = np.random.default_rng(seed)
+    P = _cloud(rng, 240, scale, offset)
+    Q = P[rng.permutation(len(P))[:150]] + rng.normal(scale=r, size=(150, 3))
+    Ts = np.stack([np.eye(4)] + [random_transform(rng, max_translation=r * 3) for _ in range(4)])
+    Ts[1:, :3, 3] += offset - Ts[1:, :3, :3] @ np.full(3, offset)  # turn about the cloud, not the origin
+    h = E.CellHash(P, r)
+    for inverse in (False, True):
+        got = h.hits(Q, Ts, inverse)
+        for k, T in enumerate(Ts):
+            R, t = (T[:3, :3].T, -T[:3, :3].T @ T[:3, 3]) if inverse else (T[:3, :3], T[:3, 3])
+            assert got[k] == np.count_nonzero(_kd_idx(P, Q @ R.T + t, r) >= 0)
+    if scale / r < 100:  # a box of < ~2e6 voxels: the filter is built and exercised
+        assert len(h.near_bitmap()[0]) > 0
+
+
 def test_clouds_too_far_out_fall_back_to_the_kdtree():
     rng = np.random.default_rng(1)
     P = _cloud(rng, 200, 5.0, 1e12)
@@ -69,6 +90,21 @@ def test_occupancy_overlap_equals_sorted_key_reference(seed, H, offset):
     b = E.SupportCloud(_cloud(rng, 300, 20.0, offset))
     Ts = np.stack([random_transform(rng, max_translation=3.0) for _ in range(H)])
     np.testing.assert_array_equal(E.occupancy_overlap(a, b, Ts, 0.3), E._occupancy_overlap_reference(a, b, Ts, 0.3))
+
+
+def test_occupancy_bitmap_and_hash_table_agree_with_the_reference():
+    """A box too large for the bitmap (two clusters 3 km apart) takes the hash table; both
+    answer what the sorted-key reference answers."""
+    rng = np.random.default_rng(5)
+    near = _cloud(rng, 300, 20.0, 0.0)
+    far = np.concatenate([near, _cloud(rng, 300, 20.0, 3000.0)])
+    Ts = np.stack([random_transform(rng, max_translation=3.0) for _ in range(6)] + [np.eye(4)])
+    for pts, bitmap in ((near, True), (far, False)):
+        a, b = E.SupportCloud(pts + rng.normal(scale=0.05, size=pts.shape)), E.SupportCloud(pts)
+        assert (len(b.occupied_table(0.3)[2]) > 0) == bitmap
+        got = E.occupancy_overlap(a, b, Ts, 0.3)
+        np.testing.assert_array_equal(got, E._occupancy_overlap_reference(a, b, Ts, 0.3))
+        assert got[-1].min() > 0.9  # the identity explains nearly everything: the test is not empty
 
 
 def _align_reference(source, target, T, distances=(1.0, 0.6, 0.4, 0.3, 0.3)):
