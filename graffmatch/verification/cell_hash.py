@@ -403,6 +403,18 @@ def occupied_hits(P: NDArray[np.float64], Ts: NDArray[np.float64], inverse: bool
     return out
 
 
+@nb.njit(cache=True)
+def _set_near_bits(cells: NDArray[np.int64], dims: NDArray[np.int64], bits: NDArray[np.uint8]) -> None:
+    """Set the bit of every voxel in the 27-neighbourhood of each row of ``cells`` (voxel
+    indices inside a box of ``dims``, one voxel from its border)."""
+    for a in range(cells.shape[0]):
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                for dz in range(-1, 2):
+                    f = ((cells[a, 0] + dx) * dims[1] + (cells[a, 1] + dy)) * dims[2] + (cells[a, 2] + dz)
+                    bits[f >> 3] |= np.uint8(1 << (f & 7))
+
+
 class CellHash:
     """Points of one cloud bucketed by cells of twice the radius (slightly more), found through
     a dense table over the cloud's box when that is small (<= ``_DENSE_MAX`` cells), else a hash.
@@ -478,12 +490,8 @@ class CellHash:
             if float(np.prod(dims.astype(float))) > NEAR_BITS:  # too large: no filter
                 self._near = (np.zeros(0, np.uint8), lo, dims, 1.0 / v)
                 return self._near
-            off = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij"), axis=-1).reshape(-1, 3)
-            cells = np.unique(base - lo, axis=0)
-            nb_ = (cells[:, None, :] + off[None]).reshape(-1, 3)
-            flat = (nb_[:, 0] * dims[1] + nb_[:, 1]) * dims[2] + nb_[:, 2]
             bits = np.zeros((int(np.prod(dims)) + 7) // 8, np.uint8)
-            np.bitwise_or.at(bits, flat >> 3, (1 << (flat & 7)).astype(np.uint8))
+            _set_near_bits(np.ascontiguousarray(base - lo), dims, bits)
             self._near = (bits, lo, dims, 1.0 / v)
         return self._near
 
