@@ -5,18 +5,23 @@ Data (all from one command, cached under --out):
 * ``balm_courtyard`` (real): pairs 3-16 m apart. Calibration split: both scans in the first
   half of the walk; test split: both in the second half.
 * ``kitti00_first6`` (real): every pair of the six scans (test only).
-* simulated drives (downtown, suburban): pairs 3-16 m apart (positives), split by the first /
-  second half of each drive.
-* negatives, split by pair parity: places > 60 m apart on one recording (the suburban drive
-  has some), and cross-dataset pairs: courtyard x KITTI, simulated x real, simulated style x
-  style (``--cross-per`` of each, half of them test).
+* the simulated drives of ``graffmatch benchmark``'s suites (sim-downtown, sim-suburban,
+  sim-openroad: the realistic simulator, HDL-64): pairs 3-16 m apart (positives), split by the
+  first / second half of each drive.
+* negatives, split by pair parity: places > 60 m apart on one recording, and cross-dataset
+  pairs: courtyard x KITTI, simulated x real, simulated style x style (``--cross-per`` of each,
+  half of them test). A far pair on one recording can still share a view (an 80 m lidar on an
+  open road): it is judged by its pose like a positive, so only a valid *wrong* result counts
+  as a false positive on any negative.
 
 Each pair is matched once with a permissive decision (every threshold open) and the raw
-evidence is recorded (best score, rival ratio, structural problems, the transform); any
-threshold's outcome is then computed offline. A result is *correct* when it is within 5 deg and
-1 m of the ground-truth relative pose. Thresholds: the largest recall on the calibration split
-with precision >= 99.5 % and at most 0.5 % valid negatives; the confidence is a logistic fit on
-the calibration split. Prints the tables and writes JSON (``--json``).
+evidence is recorded (best score, rival ratio, free-space conflict, structural problems, the
+transform); any threshold's outcome is then computed offline. A result is *correct* when it is within 5 deg and
+1 m of the ground-truth relative pose. Thresholds (min overlap, max rival ratio, max free-space
+conflict) and the free-space range image (cell size, neighbourhood, margin; recomputed offline
+from each pair's transform): the largest recall on the calibration split with precision
+>= 99.5 % and at most 0.5 % valid-and-wrong negatives; the confidence is a logistic fit on the
+calibration split. Prints the tables and writes JSON (``--json``).
 
     python bench/verification.py --out /tmp/gm-verify --json bench/results/verification.json
 """
@@ -64,7 +69,7 @@ def extract_all(ds, cfg: LandmarkExtractorConfig, cache: Path, name: str) -> lis
     return out
 
 
-def load_sources(out: Path, sim_scans: int) -> dict[str, dict]:
+def load_sources(out: Path, sims: bool) -> dict[str, dict]:
     root = shared_data_root()
     src: dict[str, dict] = {}
     court = KittiFolder(root / "balm_courtyard")
@@ -75,15 +80,13 @@ def load_sources(out: Path, sim_scans: int) -> dict[str, dict]:
     kitti = KittiFolder(root / "kitti00_first6")
     src["kitti"] = {"lms": extract_all(kitti, LandmarkExtractorConfig(), out / "cache", "kitti"),
                     "poses": kitti.poses}
-    if sim_scans > 0:
-        from graffmatch.datasets.simulator import simulate_dataset
+    if sims:
+        from graffmatch.evaluation.suites import SUITES
 
-        for style, suite in (("downtown", "sim-downtown"), ("suburban", "sim-suburban")):
-            raw = simulate_dataset(out / f"sim-{style}", style=style, seed=7, n_scans=sim_scans, reuse=True)
-            ds = KittiFolder(raw)
-            cfg = LandmarkExtractorConfig.model_validate(SIM_EXTRACTORS.get(suite, {}))
-            src[f"sim-{style}"] = {"lms": extract_all(ds, cfg, out / "cache", f"sim-{style}"),
-                                   "poses": ds.poses}
+        for name in ("sim-downtown", "sim-suburban", "sim-openroad"):  # the report's drives
+            ds = SUITES[name].make_dataset(out / f"suite-{name}", False, None)
+            cfg = LandmarkExtractorConfig.model_validate(SIM_EXTRACTORS.get(name, {}))
+            src[name] = {"lms": extract_all(ds, cfg, out / "cache", name), "poses": ds.poses}
     return src
 
 
@@ -151,8 +154,10 @@ def run_pairs(src: dict, pairs: list[dict], cfg: GraffMatchConfig) -> list[dict]
         row["structural"] = bool(r.T_target_source is not None and r.valid)
         row["message"] = r.message
         row["n_hyp"] = len(r.hypotheses)
+        row["conflict"] = float(max(r.info.get("free_space_conflict", (0.0, 0.0))))
+        row["T"] = None if r.T_target_source is None else np.asarray(r.T_target_source).tolist()
         row["correct"] = False
-        if p["positive"] and r.T_target_source is not None:
+        if p["ds"] == p["ds2"] and r.T_target_source is not None:  # far pairs too: judged by pose
             Pi, Pj = src[p["ds"]]["poses"][p["i"]], src[p["ds"]]["poses"][p["j"]]
             T_gt = invert(Pi) @ Pj  # maps scan j (source) into scan i (target)
             rot, tr = transform_errors(r.T_target_source, T_gt)
@@ -167,11 +172,12 @@ def run_pairs(src: dict, pairs: list[dict], cfg: GraffMatchConfig) -> list[dict]
     return rows
 
 
-def decide(rows: list[dict], min_overlap: float, max_ratio: float) -> np.ndarray:
+def decide(rows: list[dict], min_overlap: float, max_ratio: float, max_conflict: float = 1.0) -> np.ndarray:
     s = np.array([r["score"] for r in rows])
     q = np.array([r["ratio"] for r in rows])
+    c = np.array([r.get("conflict", 0.0) for r in rows])
     st = np.array([r["structural"] for r in rows])
-    return st & (s >= min_overlap) & (q <= max_ratio)
+    return st & (s >= min_overlap) & (q <= max_ratio) & (c <= max_conflict)
 
 
 def metrics(rows: list[dict], valid: np.ndarray) -> dict:
@@ -184,9 +190,10 @@ def metrics(rows: list[dict], valid: np.ndarray) -> dict:
         "valid": n_valid, "valid_correct": int(tp.sum()),
         "precision": float(tp.sum() / n_valid) if n_valid else float("nan"),
         "recall": float(tp.sum() / pos.sum()) if pos.sum() else float("nan"),
-        "valid_negatives": int((valid & ~pos).sum()),
-        "fpr_negatives": float((valid & ~pos).sum() / (~pos).sum()) if (~pos).sum() else float("nan"),
-        "oracle_recall": float(cor.sum() / pos.sum()) if pos.sum() else float("nan"),
+        "valid_negatives": int((valid & ~pos & ~cor).sum()),
+        "valid_negatives_right_pose": int((valid & ~pos & cor).sum()),
+        "fpr_negatives": float((valid & ~pos & ~cor).sum() / (~pos).sum()) if (~pos).sum() else float("nan"),
+        "oracle_recall": float((cor & pos).sum() / pos.sum()) if pos.sum() else float("nan"),
     }
 
 
@@ -200,41 +207,92 @@ def auc(score: np.ndarray, label: np.ndarray) -> float:
     return float((ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg)))
 
 
-def choose_thresholds(cal: list[dict]) -> tuple[float, float, dict]:
+#: Free-space range images compared on the calibration split: (azimuth deg, elevation deg,
+#: neighbour cells, margin m, relative margin).
+FREE_SPACE_VARIANTS = [(az, el, nb, mg, rel) for az, el in ((1.0, 1.0), (1.0, 2.0), (2.0, 2.0))
+                       for nb in (1, 2) for mg in (1.0, 2.0) for rel in (0.05, 0.1)]
+
+
+def free_space_conflicts(src: dict, rows: list[dict], variant: tuple) -> np.ndarray:
+    """Each pair's free-space conflict (max of both directions) at its matched transform, for
+    one range-image variant: what the matcher computes with those settings."""
+    from graffmatch.verification.evidence import support_cloud
+    from graffmatch.verification.free_space import conflict_fraction
+
+    az, el, nb, mg, rel = variant
+    clouds: dict = {}
+
+    def cloud(ds: str, i: int):
+        if (ds, i) not in clouds:
+            clouds[ds, i] = support_cloud(src[ds]["lms"][i])
+        return clouds[ds, i]
+
+    out = np.zeros(len(rows))
+    for k, r in enumerate(rows):
+        if r.get("T") is None:
+            continue
+        cs, ct = cloud(r["ds2"], r["j"]), cloud(r["ds"], r["i"])
+        if cs is None or ct is None:
+            continue
+        img_s, img_t = cs.range_image(az, el, nb), ct.range_image(az, el, nb)
+        if img_s is None or img_t is None:
+            continue
+        out[k] = max(conflict_fraction(cs.points, ct.points, img_s, img_t, np.asarray(r["T"]), mg, rel,
+                                       cs.sensor_pose, ct.sensor_pose))
+    return out
+
+
+def choose_thresholds(cal: list[dict], conflicts: np.ndarray | None = None) -> tuple[float, float, float, dict]:
+    """Most calibration recall with precision >= 99.5 % and <= 0.5 % valid-and-wrong negatives
+    (vectorised over the grid); ties: the stricter overlap / ratio, the looser conflict."""
+    S = np.array([r["score"] for r in cal])
+    Q = np.array([r["ratio"] for r in cal])
+    ST = np.array([r["structural"] for r in cal])
+    COR = np.array([r["correct"] for r in cal])
+    POS = np.array([r["positive"] for r in cal])
+    C = np.array([r.get("conflict", 0.0) for r in cal]) if conflicts is None else conflicts
+    n_pos, n_neg = max(POS.sum(), 1), max((~POS).sum(), 1)
     best = None
-    for mo in np.round(np.arange(0.05, 0.71, 0.025), 3):
-        for mr in np.round(np.arange(0.5, 0.96, 0.025), 3):
-            m = metrics(cal, decide(cal, mo, mr))
-            prec = m["precision"] if m["valid"] else 1.0
-            if prec < 0.995 or m["fpr_negatives"] > 0.005:
-                continue
-            key = (m["recall"], -mo, -mr)  # most recall; ties: the stricter thresholds
-            if best is None or key > best[0]:
-                best = (key, float(mo), float(mr), m)
+    for mc in [*np.round(np.arange(0.04, 0.40, 0.01), 3), 1.0]:
+        b1 = ST & (C <= mc)
+        for mo in np.round(np.arange(0.05, 0.71, 0.0125), 4):
+            b2 = b1 & (S >= mo)
+            for mr in np.round(np.arange(0.5, 0.96, 0.025), 3):
+                v = b2 & (Q <= mr)
+                nv = v.sum()
+                tp = (v & COR).sum()
+                if (nv and tp / nv < 0.995) or (v & ~POS & ~COR).sum() / n_neg > 0.005:
+                    continue
+                key = ((v & COR & POS).sum() / n_pos, -mo, -mr, mc)
+                if best is None or key > best[0]:
+                    best = (key, float(mo), float(mr), float(mc))
     if best is None:
-        return 0.7, 0.5, {}
-    return best[1], best[2], best[3]
+        return 0.7, 0.5, 0.0, {}
+    rows = [dict(r, conflict=float(c)) for r, c in zip(cal, C, strict=True)]
+    return best[1], best[2], best[3], metrics(rows, decide(rows, best[1], best[2], best[3]))
 
 
-def fit_confidence(cal: list[dict]) -> tuple[float, float, float]:
+def fit_confidence(cal: list[dict]) -> tuple[float, float, float, float]:
     rows = [r for r in cal if r["structural"]]
     x1 = np.array([r["score"] for r in rows])
     x2 = 1.0 - np.array([r["ratio"] for r in rows])
+    x3 = np.array([r.get("conflict", 0.0) for r in rows])
     y = np.array([r["correct"] for r in rows], float)
 
     def nll(c: np.ndarray) -> float:
-        z = c[0] + c[1] * x1 + c[2] * x2
+        z = c[0] + c[1] * x1 + c[2] * x2 + c[3] * x3
         return float(np.sum(np.logaddexp(0, z) - y * z) + 1e-3 * np.sum(c**2))
 
-    res = minimize(nll, np.array([-4.0, 10.0, 4.0]), method="BFGS")
+    res = minimize(nll, np.array([-4.0, 10.0, 4.0, -10.0]), method="BFGS")
     return tuple(float(v) for v in res.x)  # type: ignore[return-value]
 
 
 def reliability(rows: list[dict], coef, valid: np.ndarray, bins: int = 5) -> list[dict]:
-    c0, c1, c2 = coef
+    c0, c1, c2, c3 = coef
     s = np.array([r["score"] for r in rows])
     q = np.array([r["ratio"] for r in rows])
-    conf = 1 / (1 + np.exp(-(c0 + c1 * s + c2 * (1 - q))))
+    c = np.array([r.get("conflict", 0.0) for r in rows])
+    conf = 1 / (1 + np.exp(-(c0 + c1 * s + c2 * (1 - q) + c3 * c)))
     cor = np.array([r["correct"] for r in rows])
     st = np.array([r["structural"] for r in rows])
     out = []
@@ -247,14 +305,16 @@ def reliability(rows: list[dict], coef, valid: np.ndarray, bins: int = 5) -> lis
     return out
 
 
-def lines_only(src: dict, pairs: list[dict], mo: float, mr: float) -> dict:
+def lines_only(src: dict, pairs: list[dict], mo: float, mr: float, mc: float, variant: tuple) -> dict:
     """GraffMatch-lines (poles only) with the verified matcher and the chosen thresholds, on the
     simulated suites' test pairs (positives and the simulated negatives)."""
     sel = [p for p in pairs if p["split"] == "test" and p["ds"].startswith("sim") and p["ds2"].startswith("sim")]
     cfg = GraffMatchConfig(landmark_types=["line"], verification=VerificationConfig(
         min_overlap=0.0, max_rival_ratio=1.0, min_landmark_overlap=0.0))
     rows = run_pairs(src, sel, cfg)
-    v = decide(rows, mo, mr)
+    for r, c in zip(rows, free_space_conflicts(src, rows, variant), strict=True):
+        r["conflict"] = float(c)
+    v = decide(rows, mo, mr, mc)
     out = {}
     print(f"\n{'lines only (test split)':<30}{'pairs':>6}{'pos':>5}{'neg':>5}{'valid':>6}{'prec':>7}{'recall':>7}"
           f"{'oracle':>7}{'FP neg':>8}")
@@ -270,7 +330,7 @@ def lines_only(src: dict, pairs: list[dict], mo: float, mr: float) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="/tmp/gm-verify")
-    ap.add_argument("--sim-scans", type=int, default=120)
+    ap.add_argument("--no-sim", action="store_true", help="real data only (no simulated drives)")
     ap.add_argument("--max-per", type=int, default=120, help="positives per dataset and split")
     ap.add_argument("--cross-per", type=int, default=180,
                     help="negatives per pair of datasets (and per dataset, > 60 m apart), half of them test")
@@ -278,26 +338,42 @@ def main() -> None:
     a = ap.parse_args()
     out = Path(a.out)
     t0 = time.perf_counter()
-    src = load_sources(out, a.sim_scans)
+    src = load_sources(out, not a.no_sim)
     print(f"landmarks ready in {time.perf_counter() - t0:.0f} s: "
           + ", ".join(f"{k} {len(v['lms'])}" for k, v in src.items()), flush=True)
     pairs = make_pairs(src, a.max_per, a.cross_per)
     open_cfg = GraffMatchConfig(verification=VerificationConfig(min_overlap=0.0, max_rival_ratio=1.0,
-                                                                min_landmark_overlap=0.0))
+                                                                max_conflict=1.0, min_landmark_overlap=0.0))
     rows = run_pairs(src, pairs, open_cfg)
     cal = [r for r in rows if r["split"] == "cal"]
     test = [r for r in rows if r["split"] == "test"]
-    mo, mr, cal_m = choose_thresholds(cal)
+    variants = []
+    for variant in FREE_SPACE_VARIANTS:  # the range image, chosen on the calibration split too
+        c_all = free_space_conflicts(src, rows, variant)
+        c_cal = np.array([c for c, r in zip(c_all, rows, strict=True) if r["split"] == "cal"])
+        mo, mr, mc, cal_m = choose_thresholds(cal, c_cal)
+        variants.append({"variant": variant, "min_overlap": mo, "max_rival_ratio": mr, "max_conflict": mc,
+                         "calibration_recall": cal_m.get("recall", 0.0), "conflicts": c_all})
+        print(f"  free space {variant}: calibration recall {cal_m.get('recall', 0.0):.3f} at "
+              f"min_overlap={mo}, max_rival_ratio={mr}, max_conflict={mc}", flush=True)
+    chosen = max(variants, key=lambda v: (v["calibration_recall"], -FREE_SPACE_VARIANTS.index(v["variant"])))
+    for r, c in zip(rows, chosen["conflicts"], strict=True):
+        r["conflict"] = float(c)
+    mo, mr, mc, cal_m = choose_thresholds(cal)
     coef = fit_confidence(cal)
-    print(f"\nchosen on the calibration split ({len(cal)} pairs): min_overlap={mo}, max_rival_ratio={mr}; "
-          f"confidence coef={tuple(round(c, 3) for c in coef)}")
-    report: dict = {"thresholds": {"min_overlap": mo, "max_rival_ratio": mr}, "confidence_coef": coef,
-                    "calibration": cal_m, "test": {}, "test_by_dataset": {}}
+    print(f"free-space variant chosen on the calibration split: {chosen['variant']}")
+    print(f"\nchosen on the calibration split ({len(cal)} pairs): min_overlap={mo}, max_rival_ratio={mr}, "
+          f"max_conflict={mc}; confidence coef={tuple(round(c, 3) for c in coef)}")
+    report: dict = {"thresholds": {"min_overlap": mo, "max_rival_ratio": mr, "max_conflict": mc},
+                    "free_space_variant": dict(zip(("az_deg", "el_deg", "neighbours", "margin", "margin_rel"),
+                                                   chosen["variant"], strict=True)),
+                    "free_space_variants": [{k: v for k, v in d.items() if k != "conflicts"} for d in variants],
+                    "confidence_coef": coef, "calibration": cal_m, "test": {}, "test_by_dataset": {}}
     base = VerificationConfig()
-    for label, (o, r_) in {"chosen": (mo, mr), "defaults": (base.min_overlap, base.max_rival_ratio)}.items():
-        v = decide(test, o, r_)
-        report["test"][label] = metrics(test, v)
-    v = decide(test, mo, mr)
+    for label, th in {"chosen": (mo, mr, mc), "defaults": (base.min_overlap, base.max_rival_ratio, base.max_conflict),
+                      "without free space": (mo, mr, 1.0)}.items():
+        report["test"][label] = metrics(test, decide(test, *th))
+    v = decide(test, mo, mr, mc)
     print(f"\n{'test split':<30}{'pairs':>6}{'pos':>5}{'neg':>5}{'valid':>6}{'prec':>7}{'recall':>7}"
           f"{'oracle':>7}{'FP neg':>8}")
     keys = sorted({(r["ds"], r["ds2"]) for r in test})
@@ -312,7 +388,11 @@ def main() -> None:
     m = report["test"]["chosen"]
     print(f"{'ALL (test)':<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
           f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
-    report["lines_only_test"] = lines_only(src, pairs, mo, mr)
+    for label in ("defaults", "without free space"):
+        m = report["test"][label]
+        print(f"{'ALL (test), ' + label:<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
+              f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
+    report["lines_only_test"] = lines_only(src, pairs, mo, mr, mc, chosen["variant"])
     st = np.array([r["structural"] for r in test])
     lab = np.array([r["correct"] for r in test])
     sc = np.array([r["score"] for r in test])

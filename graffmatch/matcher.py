@@ -264,6 +264,8 @@ def _verified_result(source, target, graph, sol, cfg: GraffMatchConfig, timings,
                   weights=np.ones(best.n_associations))
     common["info"].update(origin=best.origin, rival_ratio=verdict.rival_ratio,
                           score_parts=best.score_parts, clipper_selected=len(sol.selected))
+    if "free_space_conflict" in best.info:
+        common["info"]["free_space_conflict"] = best.info["free_space_conflict"]
     valid = not problems
     return MatchResult(
         best.T_target_source, kappa=best.kappa, degenerate=best.degenerate, valid=valid,

@@ -251,6 +251,25 @@ class Landmark:
         return np.concatenate([n, [n @ self.anchor]])
 
 
+def _sensor_pose(value: ArrayLike | str | None) -> Array | None:
+    """The sensor pose of a set: 'identity' (a scan's own frame), None (unknown) or a rigid 4x4."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        if value != "identity":
+            raise InvalidInputError(f"sensor_pose must be 'identity', None or a 4x4 transform, got {value!r}")
+        return np.eye(4)
+    return check_transform(value, "sensor_pose")
+
+
+def _pose_from_meta(meta: dict) -> Array | str | None:
+    """The sensor pose stored in a landmark file's meta (absent: a scan's own frame)."""
+    if "sensor_pose" not in meta:
+        return "identity"
+    rows = meta["sensor_pose"]
+    return None if rows is None else np.r_[np.asarray(rows, dtype=float).reshape(3, 4), [[0.0, 0.0, 0.0, 1.0]]]
+
+
 def _attrs(attributes: Mapping[str, ArrayLike]) -> dict[str, np.ndarray]:
     out = {}
     for k, v in attributes.items():
@@ -303,9 +322,12 @@ class LandmarkSet:
     points, point_offsets : optional support points, ragged: landmark i owns
         ``points[point_offsets[i]:point_offsets[i+1]]`` (float32, metres). Needed by ICP
         refinement and BruteForceRMSE; not written to the compact file unless asked.
+    sensor_pose : (4, 4) float64 or None, the sensor's pose in this frame: identity for a
+        scan's landmarks (the default), moved by :meth:`transform`; None when unknown (a map
+        merged from many viewpoints). Verification's free-space check needs it.
     """
 
-    __slots__ = ("anchors", "attributes", "bases", "point_offsets", "points", "types")
+    __slots__ = ("anchors", "attributes", "bases", "point_offsets", "points", "sensor_pose", "types")
 
     def __init__(
         self,
@@ -316,7 +338,9 @@ class LandmarkSet:
         points: ArrayLike | None = None,
         point_offsets: ArrayLike | None = None,
         validate: bool = True,
+        sensor_pose: ArrayLike | str | None = "identity",
     ) -> None:
+        self.sensor_pose = _sensor_pose(sensor_pose)
         if not validate:  # internal fast path: arrays that came out of a validated set
             self.types = np.asarray(types, dtype=np.int8).reshape(-1)
             self.bases = np.asarray(bases, dtype=np.float64)
@@ -420,6 +444,7 @@ class LandmarkSet:
         attributes: Mapping[str, ArrayLike] | None = None,
         points: ArrayLike | None = None,
         point_offsets: ArrayLike | None = None,
+        sensor_pose: ArrayLike | str | None = "identity",
     ) -> LandmarkSet:
         """Vectorised constructor from line directions / plane normals (any length)."""
         types = coerce_types(types)
@@ -453,7 +478,7 @@ class LandmarkSet:
             t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
             bases[planes, :, 0] = t1
             bases[planes, :, 1] = np.cross(nrm, t1)
-        return cls(types, bases, anchors, attributes, points, point_offsets)
+        return cls(types, bases, anchors, attributes, points, point_offsets, sensor_pose=sensor_pose)
 
     @classmethod
     def concatenate(cls, sets: Iterable[LandmarkSet]) -> LandmarkSet:
@@ -476,6 +501,8 @@ class LandmarkSet:
             pts = np.concatenate([s.points for s in sets])  # type: ignore[misc]
             counts = np.concatenate([np.diff(s.point_offsets) for s in sets])  # type: ignore[arg-type]
             offs = np.concatenate([[0], np.cumsum(counts)])
+        o0 = sets[0].sensor_pose
+        same = o0 is not None and all(s.sensor_pose is not None and np.array_equal(s.sensor_pose, o0) for s in sets)
         return cls(
             np.concatenate([s.types for s in sets]),
             np.concatenate([s.bases for s in sets]),
@@ -483,6 +510,7 @@ class LandmarkSet:
             attrs,
             pts,
             offs,
+            sensor_pose=o0 if same else None,  # one viewpoint, or unknown
         )
 
     # ---- container protocol --------------------------------------------------------
@@ -512,6 +540,7 @@ class LandmarkSet:
             pts,
             offs,
             validate=False,
+            sensor_pose=self.sensor_pose,
         )
 
     def landmark(self, i: int) -> Landmark:
@@ -605,10 +634,12 @@ class LandmarkSet:
             pts,
             self.point_offsets,
             validate=False,
+            sensor_pose=None if self.sensor_pose is None else T @ self.sensor_pose,
         )
 
     def without_points(self) -> LandmarkSet:
-        return LandmarkSet(self.types, self.bases, self.anchors, self.attributes, validate=False)
+        return LandmarkSet(self.types, self.bases, self.anchors, self.attributes, validate=False,
+                           sensor_pose=self.sensor_pose)
 
     # ---- persistence ------------------------------------------------------------------
     def to_bytes(self, include_points: bool = False) -> bytes:
@@ -627,7 +658,12 @@ class LandmarkSet:
         if include_points and self.points is not None:
             arrays["points"] = self.points
             arrays["point_offsets"] = self.point_offsets  # type: ignore[assignment]
-        arrays["meta"] = np.array(json.dumps({"format": "graffmatch-landmarks", "version": 1}))
+        meta: dict = {"format": "graffmatch-landmarks", "version": 1}
+        if self.sensor_pose is None:
+            meta["sensor_pose"] = None
+        elif not np.array_equal(self.sensor_pose, np.eye(4)):  # the default (a scan's own frame) costs no bytes
+            meta["sensor_pose"] = self.sensor_pose[:3].tolist()
+        arrays["meta"] = np.array(json.dumps(meta))
         buf = io.BytesIO()
         np.savez_compressed(buf, **arrays)
         return buf.getvalue()
@@ -674,7 +710,7 @@ class LandmarkSet:
             attrs = {
                 k: (v.astype(np.float64) if v.dtype.kind == "f" else v) for k, v in attrs.items()
             }
-            return cls(types, bases, anchors, attrs, pts, offs)
+            return cls(types, bases, anchors, attrs, pts, offs, sensor_pose=_pose_from_meta(meta))
         except (InvalidInputError, ValueError, TypeError, IndexError) as exc:
             raise MalformedFileError(f"{path}: invalid landmark file ({exc})") from exc
 

@@ -475,6 +475,7 @@ class LandmarkExtractor:
             T = np.eye(4)
             T[:3, 3] = offset
             out = out.transform(T)
+            out.sensor_pose = None  # a map frame (UTM): where the sensor was is unknown
             # Anchors are float64 and exact; support points are float32 in the far frame.
             step = float(np.abs(offset).max()) * 2.0**-24
             if out.points is not None and len(out.points) and step > PRECISION_TOLERANCE:

@@ -118,10 +118,10 @@ def _distinct(h: Hypothesis, best: Hypothesis, cfg: VerificationConfig) -> bool:
     return rot > cfg.rival_deg or tr > cfg.rival_m
 
 
-def confidence_of(score: float, rival_ratio: float, cfg: VerificationConfig) -> float:
+def confidence_of(score: float, rival_ratio: float, cfg: VerificationConfig, conflict: float = 0.0) -> float:
     """Calibrated probability that the best hypothesis is right (logistic, see config)."""
-    c0, c1, c2 = cfg.confidence_coef
-    z = c0 + c1 * score + c2 * (1.0 - rival_ratio)
+    c0, c1, c2, c3 = cfg.confidence_coef
+    z = c0 + c1 * score + c2 * (1.0 - rival_ratio) + c3 * conflict
     return float(1.0 / (1.0 + np.exp(-z)))
 
 

@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.verification.cell_hash import CellHash, occupancy_lookup, occupied_hits, voxel_keys
+from graffmatch.verification.free_space import RangeImage
 
 
 @dataclass
@@ -37,15 +38,31 @@ class SupportCloud:
     hashes) and a dilated voxel occupancy that scores many hypotheses in one lookup."""
 
     points: NDArray[np.float64]
+    #: support points *with* the ground, downsampled: the returns whose beams show free space
+    free_points: NDArray[np.float64] | None = None
+    #: the sensor's pose in this frame (None: unknown, no free-space evidence)
+    sensor_pose: NDArray[np.float64] | None = None
     occupancy: NDArray[np.int64] | None = None
     occupancy_voxel: float = 0.0
     occupancy_origin: NDArray[np.float64] | None = None
     _tree: cKDTree | None = field(default=None, repr=False)
     _hashes: dict = field(default_factory=dict, repr=False)
     _occ_table: tuple | None = field(default=None, repr=False)
+    _range_images: dict = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return len(self.points)
+
+    def range_image(self, az_deg: float, el_deg: float, neighbours: int) -> RangeImage | None:
+        """The free-space image of this scan (built on first use), or None without its returns."""
+        if self.free_points is None or self.sensor_pose is None:
+            return None
+        key = (float(az_deg), float(el_deg), int(neighbours))
+        img = self._range_images.get(key)
+        if img is None:
+            R, t = self.sensor_pose[:3, :3], self.sensor_pose[:3, 3]
+            img = self._range_images[key] = RangeImage.from_points((self.free_points - t) @ R, az_deg, el_deg, neighbours)
+        return img
 
     @property
     def tree(self) -> cKDTree:
@@ -172,7 +189,9 @@ def support_cloud(landmarks: LandmarkSet, voxel: float = 0.3, max_points: int = 
     P = voxel_downsample(pts, voxel, max_points)
     if len(P) < 10:
         return None
-    return SupportCloud(P)
+    pose = landmarks.sensor_pose
+    free = None if pose is None else voxel_downsample(landmarks.points, voxel, 2 * max_points)  # type: ignore[arg-type]
+    return SupportCloud(P, free_points=free, sensor_pose=None if pose is None else pose.copy())
 
 
 class EvidenceCache:
@@ -203,7 +222,8 @@ class EvidenceCache:
         arrays = (pts, off, ground)
         if not all(a is None or isinstance(a, np.ndarray) for a in arrays):
             return support_cloud(landmarks, voxel, max_points)
-        key = (id(pts), id(off), id(ground), float(voxel), int(max_points))
+        pose = None if landmarks.sensor_pose is None else landmarks.sensor_pose.tobytes()
+        key = (id(pts), id(off), id(ground), float(voxel), int(max_points), pose)
         with self._lock:
             e = self._entries.get(key)
             if e is not None and all((r is None and a is None) or (r is not None and r() is a)

@@ -19,6 +19,7 @@ from graffmatch.verification.config import VerificationConfig
 from graffmatch.verification.decision import (
     Hypothesis,
     Verdict,
+    confidence_of,
     decide,
     merge_hypotheses,
     transform_gap,
@@ -32,6 +33,7 @@ from graffmatch.verification.evidence import (
     point_overlaps,
     prepared_support,
 )
+from graffmatch.verification.free_space import conflict_fraction
 from graffmatch.verification.hypotheses import (
     Candidate,
     candidate_cliques,
@@ -203,6 +205,33 @@ def _pair_candidates(source: LandmarkSet, target: LandmarkSet, associations: NDA
     return pair_candidates(source, target, associations, Ts, order, cfg)
 
 
+def _check_free_space(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -> None:
+    """Invalid when the winner puts more than ``max_conflict`` of either scan's points where the
+    other scan's beams saw through (``free_space.py``); the conflict also lowers the confidence.
+    On sim-openroad this rejects the aliased matches of two different tree-lined roads that
+    overlap alone accepted (bench/verification.py)."""
+    best = verdict.best
+    src, tgt = ev.source, ev.target
+    img_s = src.range_image(cfg.free_space_az_deg, cfg.free_space_el_deg, cfg.free_space_neighbours)  # type: ignore[union-attr]
+    img_t = tgt.range_image(cfg.free_space_az_deg, cfg.free_space_el_deg, cfg.free_space_neighbours)  # type: ignore[union-attr]
+    if img_s is None or img_t is None:
+        return
+    c_st, c_ts = conflict_fraction(src.points, tgt.points, img_s, img_t,  # type: ignore[union-attr]
+                                   best.T_target_source, cfg.free_space_margin, cfg.free_space_margin_rel,
+                                   src.sensor_pose, tgt.sensor_pose)  # type: ignore[union-attr]
+    conflict = max(c_st, c_ts)
+    best.info["free_space_conflict"] = (c_st, c_ts)
+    if not best.degenerate:
+        verdict.confidence = confidence_of(best.score, verdict.rival_ratio, cfg, conflict)
+    if conflict > cfg.max_conflict:
+        which, other = ("source", "target") if c_st >= c_ts else ("target", "source")
+        verdict.valid = False
+        verdict.problems.append(
+            f"free-space conflict: {conflict:.0%} of the {which}'s points lie where the {other} "
+            f"saw through (> {cfg.max_conflict:.0%})"
+        )
+
+
 def score_hypotheses(
     hyps: list[Hypothesis], source: LandmarkSet, target: LandmarkSet, ev: Evidence,
     cfg: VerificationConfig, exact: bool,
@@ -292,4 +321,6 @@ def verify_graph(
         tm["registration"] += time.perf_counter() - t6
     if not ev.has_points and verdict.best is not None:
         _check_translation(verdict, source, target, associations, cfg)
+    if ev.has_points and cfg.free_space and verdict.best is not None:
+        _check_free_space(verdict, ev, cfg)
     return verdict, merged

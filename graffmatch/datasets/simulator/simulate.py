@@ -77,7 +77,9 @@ def gt_landmarks_in_scan(
     idx = np.flatnonzero(counts >= max(1, int(min_points)))
     sub = world.landmarks[idx]
     sub.attributes["support"] = counts[idx].astype(np.int64)
-    return sub.transform(invert(T_world_lidar))
+    view = sub.transform(invert(T_world_lidar))
+    view.sensor_pose = np.eye(4)  # what the lidar saw, from where it stood
+    return view
 
 
 def _clear_scans(out: Path) -> None:
@@ -234,7 +236,9 @@ def scan_ground_truth(
     sel = (vis["scan"] == int(index)) & (vis["count"] >= max(1, int(min_points)))
     sub = gt[vis["landmark"][sel]]
     sub.attributes["support"] = vis["count"][sel].astype(np.int64)
-    return sub.transform(invert(T_world_lidar))
+    view = sub.transform(invert(T_world_lidar))
+    view.sensor_pose = np.eye(4)  # what the lidar saw, from where it stood
+    return view
 
 
 # ---- the demo's scan pair -------------------------------------------------------------------

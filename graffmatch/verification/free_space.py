@@ -1,0 +1,97 @@
+"""Free-space evidence: a hypothesis is wrong when it puts one scan's structure where the other
+scan's sensor saw through it.
+
+Overlap counts the points a hypothesis explains; it cannot see an aliased alignment of
+repetitive structure (tree rows along two different country roads, a 90 deg turn between two
+similar streets) that explains a quarter of the points by chance. Such an alignment also puts
+many of the source's points in front of what the target's beams reached: in space the target
+observed as empty. The test is the classic visibility check of map merging: each scan's
+support points, ground included (a ground return proves the beam travelled that far), form a
+spherical range image around the sensor (the frame's origin) holding, per cell, the nearest
+return of the cell and its neighbours. A point of the other scan mapped into a cell more than
+``margin`` in front of that range conflicts.
+
+It assumes the landmarks are in their sensor's frame (one scan, origin = sensor), which is
+what the extractor produces; maps in a world frame must switch it off
+(``VerificationConfig.free_space``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import minimum_filter
+
+
+@dataclass
+class RangeImage:
+    """Nearest return per (azimuth, elevation) cell around the sensor, min-filtered over the
+    neighbouring cells (a thin pole seen by one beam still shadows its neighbours' beams);
+    ``inf`` where nothing returned (unknown: no free space is claimed there)."""
+
+    ranges: NDArray[np.float64]
+    az_deg: float
+    el_deg: float
+
+    @classmethod
+    def from_points(cls, points: NDArray, az_deg: float = 1.0, el_deg: float = 1.0,
+                    neighbours: int = 1) -> RangeImage:
+        na, ne = int(round(360.0 / az_deg)), int(round(180.0 / el_deg))
+        img = np.full((na, ne), np.inf)
+        P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        P = P[np.isfinite(P).all(axis=1)]
+        if len(P):
+            a, e, r = _cells(P, az_deg, el_deg, na, ne)
+            np.minimum.at(img, (a, e), r)
+        if neighbours > 0:
+            size = 2 * neighbours + 1
+            img = minimum_filter(img, size=(size, size), mode=("wrap", "nearest"))
+        return cls(img, az_deg, el_deg)
+
+    def conflicts(self, points: NDArray[np.float64], margin: float, margin_rel: float = 0.05,
+                  min_range: float = 2.0) -> tuple[int, int]:
+        """(points in front of the observed range R by more than max(``margin``,
+        ``margin_rel`` R), points whose cell holds a return), for points in this image's
+        sensor frame; points closer than ``min_range`` are not judged."""
+        na, ne = self.ranges.shape
+        a, e, r = _cells(points, self.az_deg, self.el_deg, na, ne)
+        R = self.ranges[a, e]
+        known = np.isfinite(R) & (r > min_range)
+        with np.errstate(invalid="ignore"):
+            bad = known & (r < R - np.maximum(margin, margin_rel * R))
+        return int(bad.sum()), int(known.sum())
+
+
+def _cells(P: NDArray[np.float64], az_deg: float, el_deg: float, na: int, ne: int
+           ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+    """Cell indices and horizontal range of points (sensor at the origin)."""
+    r = np.hypot(P[:, 0], P[:, 1])
+    a = (np.floor((np.degrees(np.arctan2(P[:, 1], P[:, 0])) + 180.0) / az_deg).astype(np.int64)) % na
+    e = np.clip(np.floor((np.degrees(np.arctan2(P[:, 2], r)) + 90.0) / el_deg).astype(np.int64), 0, ne - 1)
+    return a, e, r
+
+
+def conflict_fraction(
+    source_points: NDArray[np.float64], target_points: NDArray[np.float64],
+    source_image: RangeImage, target_image: RangeImage, T_target_source: NDArray[np.float64],
+    margin: float, margin_rel: float = 0.05,
+    source_pose: NDArray[np.float64] | None = None, target_pose: NDArray[np.float64] | None = None,
+) -> tuple[float, float]:
+    """Share of each scan's points that the hypothesis puts in the other's observed free space
+    (source -> target, target -> source); 0 where no point falls in an observed cell. Each
+    image is in its sensor's frame (``*_pose``: the sensor in the set's frame; None: identity)."""
+    Ts = np.eye(4) if source_pose is None else source_pose
+    Tt = np.eye(4) if target_pose is None else target_pose
+    A = np.linalg.inv(Tt) @ T_target_source @ Ts  # source sensor -> target sensor
+    B = np.linalg.inv(A)
+    to_s = np.linalg.inv(Ts)  # set frame -> sensor frame
+    to_t = np.linalg.inv(Tt)
+    ps = source_points @ to_s[:3, :3].T + to_s[:3, 3]
+    pt = target_points @ to_t[:3, :3].T + to_t[:3, 3]
+    q_st = ps @ A[:3, :3].T + A[:3, 3]
+    q_ts = pt @ B[:3, :3].T + B[:3, 3]
+    b1, k1 = target_image.conflicts(q_st, margin, margin_rel)
+    b2, k2 = source_image.conflicts(q_ts, margin, margin_rel)
+    return (b1 / k1 if k1 else 0.0), (b2 / k2 if k2 else 0.0)
