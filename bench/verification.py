@@ -38,6 +38,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from graffmatch.datasets.folder import KittiFolder
+from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation.suites import SIM_EXTRACTORS, shared_data_root, suite_config
 from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.geometry.transforms import invert, transform_errors
@@ -147,7 +148,12 @@ def run_pairs(src: dict, pairs: list[dict], cfg: GraffMatchConfig) -> list[dict]
             rows.append(row)
             continue
         t0 = time.perf_counter()
-        r = matcher.match(S, T)
+        try:
+            r = matcher.match(S, T)
+        except InvalidInputError as exc:  # e.g. lines only: a scan with a single pole
+            row.update(structural=False, score=0.0, ratio=1.0, correct=False, t=0.0, message=str(exc))
+            rows.append(row)
+            continue
         row["t"] = time.perf_counter() - t0
         row["score"] = float(r.overlap)
         row["ratio"] = float(r.info.get("rival_ratio", 1.0)) if r.runner_up is not None else 0.0
@@ -189,7 +195,7 @@ def metrics(rows: list[dict], valid: np.ndarray) -> dict:
         "pairs": len(rows), "positives": int(pos.sum()), "negatives": int((~pos).sum()),
         "valid": n_valid, "valid_correct": int(tp.sum()),
         "precision": float(tp.sum() / n_valid) if n_valid else float("nan"),
-        "recall": float(tp.sum() / pos.sum()) if pos.sum() else float("nan"),
+        "recall": float((tp & pos).sum() / pos.sum()) if pos.sum() else float("nan"),
         "valid_negatives": int((valid & ~pos & ~cor).sum()),
         "valid_negatives_right_pose": int((valid & ~pos & cor).sum()),
         "fpr_negatives": float((valid & ~pos & ~cor).sum() / (~pos).sum()) if (~pos).sum() else float("nan"),
@@ -392,6 +398,9 @@ def main() -> None:
         m = report["test"][label]
         print(f"{'ALL (test), ' + label:<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
               f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
+    if a.json:  # the full matcher's rows first: the lines-only pass below takes a while
+        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.json).write_text(json.dumps({**report, "rows": rows}, indent=1, default=float))
     report["lines_only_test"] = lines_only(src, pairs, mo, mr, mc, chosen["variant"])
     st = np.array([r["structural"] for r in test])
     lab = np.array([r["correct"] for r in test])

@@ -248,13 +248,26 @@ def _negative_pairs(
     config: LoopClosureConfig,
     n_positive: int,
 ) -> list[dict[str, Any]]:
-    """Pairs of places without overlap, in the pairs.json format (case 0, no true matches)."""
+    """Pairs of places without overlap, in the pairs.json format (case 0, no true matches).
+
+    Far apart is not enough: an 80 m lidar on an open road shares poles with a place 60-80 m
+    away, and a matcher that registers such a pair right is not wrong. A negative is at least
+    ``negative_min_distance`` apart *and* shares no landmark (no ground-truth match); the
+    candidates are taken evenly over all far pairs (four times as many as needed)."""
     if config.negative_min_distance is None:
         return []
     n = n_positive if config.max_negatives is None else config.max_negatives
     out = []
-    for src, tgt in find_negatives(poses, places, config.negative_min_distance, n):
-        src, tgt = int(src), int(tgt)
+    cand = find_negatives(poses, places, config.negative_min_distance, 4 * n)
+    kept = []
+    for src, tgt in cand:
+        T = invert(poses[int(tgt)]) @ poses[int(src)]
+        shared, _ = ground_truth_matches(sets[int(src)], sets[int(tgt)], T, config.tau_d_deg, config.rho)
+        if len(shared) == 0:
+            kept.append((int(src), int(tgt)))
+    if len(kept) > n:
+        kept = [kept[i] for i in np.unique(np.linspace(0, len(kept) - 1, n).round().astype(np.int64))]
+    for src, tgt in kept:
         T = invert(poses[tgt]) @ poses[src]
         out.append(
             {
