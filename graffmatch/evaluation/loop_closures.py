@@ -17,6 +17,10 @@ The rules (steps 1, 2, 4-6) live in :mod:`~graffmatch.evaluation.places`, the re
 :mod:`~graffmatch.evaluation.loop_closure_dataset`; their names stay importable from here. The
 output folder (``pairs.json`` + ``landmarks/``) is read back by :class:`LoopClosureDataset`;
 the evaluation runner iterates over it.
+
+Over 500 lines because the build is one pipeline (places -> landmarks -> revisits -> ground
+truth -> negatives -> pairs.json) whose stages share the cached per-place sets; the rules
+themselves are already in ``places.py``.
 """
 
 from __future__ import annotations
