@@ -29,33 +29,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, write_json
 
 
-def _tree_rss_mb(root: int) -> float:
-    """Resident memory of ``root`` and all its descendants [MB]."""
+def _process_tree(root: int) -> dict[int, tuple[int, float]]:
+    """(resident pages, user + system CPU seconds) of ``root`` and each descendant now, by pid,
+    from one pass over /proc."""
     children: dict[int, list[int]] = {}
-    rss: dict[int, int] = {}
-    for d in os.listdir("/proc"):
-        if not d.isdigit():
-            continue
-        try:
-            with open(f"/proc/{d}/stat") as f:
-                parts = f.read().rsplit(")", 1)[1].split()
-            ppid, pages = int(parts[1]), int(parts[21])
-        except (OSError, IndexError, ValueError):
-            continue
-        children.setdefault(ppid, []).append(int(d))
-        rss[int(d)] = pages
-    total, stack = 0, [root]
-    while stack:
-        p = stack.pop()
-        total += rss.get(p, 0)
-        stack.extend(children.get(p, []))
-    return total * os.sysconf("SC_PAGE_SIZE") / 2**20
-
-
-def _tree_cpu_s(root: int) -> dict[int, float]:
-    """User + system CPU seconds of ``root`` and each descendant now, by pid."""
-    children: dict[int, list[int]] = {}
-    cpu: dict[int, float] = {}
+    stat: dict[int, tuple[int, float]] = {}
     tick = os.sysconf("SC_CLK_TCK")
     for d in os.listdir("/proc"):
         if not d.isdigit():
@@ -63,18 +41,28 @@ def _tree_cpu_s(root: int) -> dict[int, float]:
         try:
             with open(f"/proc/{d}/stat") as f:
                 parts = f.read().rsplit(")", 1)[1].split()
-            ppid, ut, st = int(parts[1]), int(parts[11]), int(parts[12])
+            ppid, ut, st, pages = int(parts[1]), int(parts[11]), int(parts[12]), int(parts[21])
         except (OSError, IndexError, ValueError):
             continue
         children.setdefault(ppid, []).append(int(d))
-        cpu[int(d)] = (ut + st) / tick
+        stat[int(d)] = (pages, (ut + st) / tick)
     out, stack = {}, [root]
     while stack:
         p = stack.pop()
-        if p in cpu:
-            out[p] = cpu[p]
+        if p in stat:
+            out[p] = stat[p]
         stack.extend(children.get(p, []))
     return out
+
+
+def _tree_rss_mb(root: int) -> float:
+    """Resident memory of ``root`` and all its descendants [MB]."""
+    return sum(pages for pages, _ in _process_tree(root).values()) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _tree_cpu_s(root: int) -> dict[int, float]:
+    """User + system CPU seconds of ``root`` and each descendant now, by pid."""
+    return {p: cpu for p, (_, cpu) in _process_tree(root).items()}
 
 
 class PeakMemory:
