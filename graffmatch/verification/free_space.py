@@ -24,6 +24,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import minimum_filter
 
+from graffmatch.geometry.transforms import invert
+
 
 @dataclass
 class RangeImage:
@@ -84,14 +86,10 @@ def conflict_fraction(
     image is in its sensor's frame (``*_pose``: the sensor in the set's frame; None: identity)."""
     Ts = np.eye(4) if source_pose is None else source_pose
     Tt = np.eye(4) if target_pose is None else target_pose
-    A = np.linalg.inv(Tt) @ T_target_source @ Ts  # source sensor -> target sensor
-    B = np.linalg.inv(A)
-    to_s = np.linalg.inv(Ts)  # set frame -> sensor frame
-    to_t = np.linalg.inv(Tt)
-    ps = source_points @ to_s[:3, :3].T + to_s[:3, 3]
-    pt = target_points @ to_t[:3, :3].T + to_t[:3, 3]
-    q_st = ps @ A[:3, :3].T + A[:3, 3]
-    q_ts = pt @ B[:3, :3].T + B[:3, 3]
+    M_st = invert(Tt) @ T_target_source  # source set frame -> target sensor frame
+    M_ts = invert(Ts) @ invert(T_target_source)  # target set frame -> source sensor frame
+    q_st = source_points @ M_st[:3, :3].T + M_st[:3, 3]
+    q_ts = target_points @ M_ts[:3, :3].T + M_ts[:3, 3]
     b1, k1 = target_image.conflicts(q_st, margin, margin_rel)
     b2, k2 = source_image.conflicts(q_ts, margin, margin_rel)
     return (b1 / k1 if k1 else 0.0), (b2 / k2 if k2 else 0.0)
