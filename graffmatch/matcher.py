@@ -194,7 +194,7 @@ def match_with_distances(
     )
     t1 = time.perf_counter()
     timings["graph"] = t1 - t0
-    sol = solve_clipper(graph.weights, cfg.solver)
+    sol = solve_clipper(graph, cfg.solver)
     t2 = time.perf_counter()
     timings["solver"] = t2 - t1
     sel = sol.selected

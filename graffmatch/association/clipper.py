@@ -26,6 +26,7 @@ import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
+from graffmatch.association.consistency_graph import ConsistencyGraph
 from graffmatch.errors import InvalidInputError
 
 Rounding = Literal["nonzero", "dsd_heu", "clique"]
@@ -770,7 +771,7 @@ def _subgraph(indptr, indices, data, keep_mask):
                 c += keep_mask[indices[t]]  # branch-free: a kept/dropped neighbour is a coin flip
             counts[newid[v] + 1] = c
     ip = np.cumsum(counts)
-    ind = np.empty(ip[-1] + 1, dtype=np.int32)  # + 1: the branch-free copy writes one past a row
+    ind = np.empty(ip[-1] + 1, dtype=indices.dtype)  # + 1: the branch-free copy writes one past a row
     dat = np.empty(ip[-1] + 1, dtype=data.dtype)
     for v in range(m):
         if keep_mask[v]:
@@ -778,7 +779,7 @@ def _subgraph(indptr, indices, data, keep_mask):
             for t in range(indptr[v], indptr[v + 1]):
                 # write every entry, advance only past kept ones (overwritten otherwise)
                 w = indices[t]
-                ind[pos] = np.int32(newid[w])
+                ind[pos] = newid[w]  # fits: the subgraph has fewer vertices
                 dat[pos] = data[t]
                 pos += keep_mask[w]
     return ip, ind[: ip[-1]], dat[: ip[-1]]
@@ -800,13 +801,31 @@ def _is_clique(indptr, indices, sel, m):
     return True
 
 
-def _clique_cleanup(W: sp.csr_matrix, sel: NDArray[np.int64], u: NDArray[np.float64]) -> NDArray[np.int64]:
+@nb.njit(cache=True)
+def _induced_adjacency(indptr, indices, sel, m):
+    """Adjacency (k x k, bool) of the subgraph induced by ``sel``, diagonal True."""
+    k = sel.shape[0]
+    pos = np.full(m, -1, dtype=np.int64)
+    for i in range(k):
+        pos[sel[i]] = i
+    A = np.zeros((k, k), dtype=np.bool_)
+    for i in range(k):
+        A[i, i] = True
+        for t in range(indptr[sel[i]], indptr[sel[i] + 1]):
+            j = pos[indices[t]]
+            if j >= 0:
+                A[i, j] = True
+    return A
+
+
+def _clique_cleanup(csr: tuple, sel: NDArray[np.int64], u: NDArray[np.float64]) -> NDArray[np.int64]:
     """Remove vertices with the most non-edges (ties: smallest u) until ``sel`` is a clique."""
+    indptr, indices, _ = csr
+    m = indptr.shape[0] - 1
     sel = np.asarray(sel, dtype=np.int64)
-    if sel.size < 2 or _is_clique(W.indptr, W.indices, sel, W.shape[0]):
+    if sel.size < 2 or _is_clique(indptr, indices, sel, m):
         return sel
-    A = (W[sel][:, sel] != 0).toarray()
-    np.fill_diagonal(A, True)
+    A = _induced_adjacency(indptr, indices, sel, m)
     alive = np.ones(sel.size, dtype=bool)
     while True:
         missing = (~A[np.ix_(alive, alive)]).sum(axis=1)
@@ -1029,37 +1048,43 @@ def greedy_cliques(
     return [members[offsets[c]:offsets[c + 1]] for c in range(len(objectives))], objectives
 
 
-def solve_clipper(weights: sp.spmatrix, config: ClipperConfig | None = None,
+def solve_clipper(weights: sp.spmatrix | ConsistencyGraph, config: ClipperConfig | None = None,
                   u0: NDArray[np.float64] | None = None) -> ClipperSolution:
     """Find the densest consistent clique of a weighted consistency graph.
 
     ``weights``: symmetric (m x m) sparse matrix of edge weights in (0, 1], zero diagonal
-    (non-zero pattern = edges). Returns the selected vertex indices, sorted. With
+    (non-zero pattern = edges), or a :class:`ConsistencyGraph`, whose compact arrays are used
+    as stored (no copy). Returns the selected vertex indices, sorted. With
     ``config.greedy_starts`` > 0, greedy cliques compete with CLIPPER's on the same objective;
     they only run where they can beat it (see :func:`greedy_cliques`), within
     max(``greedy_max_work`` x nnz, ``greedy_min_work``) edge visits.
     """
     cfg = config or ClipperConfig()
-    W = weights if isinstance(weights, sp.csr_matrix) else sp.csr_matrix(weights)
-    if W.shape[0] != W.shape[1]:
-        raise InvalidInputError(f"weights must be square, got {W.shape}")
+    if isinstance(weights, ConsistencyGraph):
+        csr = (weights.indptr, weights.indices, weights.data)
+        m = weights.m
+    else:
+        W = weights if isinstance(weights, sp.csr_matrix) else sp.csr_matrix(weights)
+        if W.shape[0] != W.shape[1]:
+            raise InvalidInputError(f"weights must be square, got {W.shape}")
+        csr, m = _csr_parts(W), W.shape[0]
     wdeg = None  # weighted degrees, from the validation pass
-    if W.nnz:
-        valid, diagonal, wdeg = _check_graph(W.indptr, W.indices, W.data)
+    if csr[1].shape[0]:
+        valid, diagonal, wdeg = _check_graph(*csr)
         if not valid:
             raise InvalidInputError("edge weights must be finite and in [0, 1]")
         if diagonal:
-            W = W.copy()
+            W = sp.csr_matrix((csr[2], csr[1], csr[0]), shape=(m, m), copy=True)
             W.setdiag(0)
             W.eliminate_zeros()
-            wdeg = None
-    sol = _solve_once(W, cfg, u0)
-    if cfg.greedy_starts and W.nnz:
-        _greedy_stage(W, sol, cfg, wdeg)
+            csr, wdeg = _csr_parts(W), None
+    sol = _solve_once(csr, m, cfg, u0)
+    if cfg.greedy_starts and csr[1].shape[0]:
+        _greedy_stage(csr, sol, cfg, wdeg)
     return sol
 
 
-def _greedy_stage(W: sp.csr_matrix, sol: ClipperSolution, cfg: ClipperConfig,
+def _greedy_stage(csr: tuple, sol: ClipperSolution, cfg: ClipperConfig,
                   wdeg: NDArray[np.float64] | None = None) -> None:
     """Let greedy cliques compete with CLIPPER's clique (in place on ``sol``), only where they can win.
 
@@ -1069,8 +1094,8 @@ def _greedy_stage(W: sp.csr_matrix, sol: ClipperSolution, cfg: ClipperConfig,
     best-connected core vertices: a growth that would leave the core ends in a clique too small
     to win, and a growth that can win picks only core vertices, so the restriction loses no
     winner."""
-    indptr, indices, data = _csr_parts(W)
-    m = W.shape[0]
+    indptr, indices, data = csr
+    m = indptr.shape[0] - 1
     density = _clique_objective(indptr, indices, data, sol.selected, m)
     w_max = float(data.max())
     k_min = int(np.floor((density - 1.0) / w_max)) + 2 if w_max > 0 else m + 1
@@ -1081,7 +1106,7 @@ def _greedy_stage(W: sp.csr_matrix, sol: ClipperSolution, cfg: ClipperConfig,
     if keep.size >= k_min:
         wdeg = (_row_sums(indptr, data) if wdeg is None else wdeg)[keep]
         starts = keep[np.argsort(-wdeg, kind="stable")[: cfg.greedy_starts]].astype(np.int64)
-        budget = max(int(cfg.greedy_max_work * W.nnz), cfg.greedy_min_work)
+        budget = max(int(cfg.greedy_max_work * indices.shape[0]), cfg.greedy_min_work)
         members, offsets, objectives, work = _greedy_core(
             indptr, indices, data, starts, density + 1e-9, starts.size, budget, True, False,
             np.zeros(m, dtype=np.bool_), core,
@@ -1100,16 +1125,16 @@ def _greedy_stage(W: sp.csr_matrix, sol: ClipperSolution, cfg: ClipperConfig,
         sol.info["chosen"] = "clipper"
 
 
-def _solve_once(W: sp.csr_matrix, cfg: ClipperConfig,
+def _solve_once(csr: tuple, m: int, cfg: ClipperConfig,
                 u0: NDArray[np.float64] | None) -> ClipperSolution:
-    """CLIPPER alone on a checked graph (square, weights in [0, 1], no diagonal)."""
-    m = W.shape[0]
+    """CLIPPER alone on a checked graph (CSR arrays; square, weights in [0, 1], no diagonal)."""
     if m == 0:
         return ClipperSolution(np.zeros(0, np.int64), np.zeros(0), 0.0, 0, 0, 0, 0.0)
     # float32 weights (the graph builder's) are used as stored: the mat-vec streams 8 bytes per
     # non-zero instead of 12, and accumulates in float64.
-    indptr, indices, data = _csr_parts(W)
-    if cfg.prune and W.nnz:
+    indptr, indices, data = csr
+    nnz = int(indices.shape[0])
+    if cfg.prune and nnz:
         order = np.argsort(-np.diff(indptr), kind="stable")
         lower_bound = _greedy_clique_size(indptr, indices, order)
         mask = _kcore_keep(indptr, indices, lower_bound - 1)
@@ -1138,8 +1163,8 @@ def _solve_once(W: sp.csr_matrix, cfg: ClipperConfig,
     else:
         sel = np.flatnonzero(u > cfg.eps)
         if cfg.rounding == "clique":
-            sel = np.sort(_clique_cleanup(W, sel, u))
+            sel = np.sort(_clique_cleanup(csr, sel, u))
     return ClipperSolution(
         np.asarray(sel, dtype=np.int64), u, score, outer, inner, nmv, float(d),
-        {"m": m, "m_after_pruning": int(keep.size), "nnz": int(W.nnz)},
+        {"m": m, "m_after_pruning": int(keep.size), "nnz": nnz},
     )

@@ -80,3 +80,21 @@ def test_vectorised_exp_matches_numpy(epsilon, sigma):
     ok = ref > 1e-290
     assert np.max(np.abs(out[ok] - ref[ok]) / ref[ok]) < 1e-12
     assert np.count_nonzero(out.astype(np.float32) != ref.astype(np.float32)) <= 2
+
+
+def test_compact_storage_is_six_bytes_per_nonzero_and_equals_int32():
+    """uint16 indices + float32 weights (m <= 65,536); the scipy view widens them once, in place;
+    compact=False stores int32 from the start; both hold the same graph."""
+    sc = make_scene_pair(6, 10, seed=1)
+    Di, Dj = pairwise_distances(sc.source), pairwise_distances(sc.target)
+    g = build_consistency_graph(Di, Dj, types_i=sc.source.types, types_j=sc.target.types)
+    ref = build_consistency_graph(Di, Dj, types_i=sc.source.types, types_j=sc.target.types, compact=False)
+    assert g.indices.dtype == np.uint16 and g.data.dtype == np.float32
+    assert ref.indices.dtype == np.int32
+    assert g.indices.nbytes + g.data.nbytes == 6 * g.data.size
+    assert g.n_edges == ref.n_edges > 0 and g.m == ref.m
+    assert np.array_equal(g.indptr, ref.indptr) and np.array_equal(g.indices, ref.indices)
+    assert np.array_equal(g.data, ref.data)
+    W = g.weights
+    assert g.indices.dtype == np.int32 and np.shares_memory(W.data, g.data)
+    assert (W != ref.weights).nnz == 0 and (W != W.T).nnz == 0
