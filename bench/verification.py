@@ -160,6 +160,7 @@ def run_pairs(src: dict, pairs: list[dict], cfg: GraffMatchConfig) -> list[dict]
         row["structural"] = bool(r.T_target_source is not None and r.valid)
         row["message"] = r.message
         row["n_hyp"] = len(r.hypotheses)
+        row["n_assoc"] = len(r.associations)
         row["conflict"] = float(max(r.info.get("free_space_conflict", (0.0, 0.0))))
         row["T"] = None if r.T_target_source is None else np.asarray(r.T_target_source).tolist()
         row["correct"] = False
@@ -248,9 +249,11 @@ def free_space_conflicts(src: dict, rows: list[dict], variant: tuple) -> np.ndar
     return out
 
 
-def choose_thresholds(cal: list[dict], conflicts: np.ndarray | None = None) -> tuple[float, float, float, dict]:
-    """Most calibration recall with precision >= 99.5 % and <= 0.5 % valid-and-wrong negatives
-    (vectorised over the grid); ties: the stricter overlap / ratio, the looser conflict."""
+def choose_thresholds(cal: list[dict], conflicts: np.ndarray | None = None, groups: np.ndarray | None = None,
+                      max_neg_fpr: float = 0.005, loose_conflict: bool = True) -> tuple[float, float, float, dict]:
+    """Most calibration recall with precision >= 99.5 % (in each of ``groups`` when given) and
+    <= ``max_neg_fpr`` valid-and-wrong negatives (vectorised over the grid); ties: the stricter
+    overlap / ratio, the looser conflict (``loose_conflict``) or the stricter."""
     S = np.array([r["score"] for r in cal])
     Q = np.array([r["ratio"] for r in cal])
     ST = np.array([r["structural"] for r in cal])
@@ -258,6 +261,7 @@ def choose_thresholds(cal: list[dict], conflicts: np.ndarray | None = None) -> t
     POS = np.array([r["positive"] for r in cal])
     C = np.array([r.get("conflict", 0.0) for r in cal]) if conflicts is None else conflicts
     n_pos, n_neg = max(POS.sum(), 1), max((~POS).sum(), 1)
+    G = [] if groups is None else [groups == g for g in np.unique(groups)]
     best = None
     for mc in [*np.round(np.arange(0.04, 0.40, 0.01), 3), 1.0]:
         b1 = ST & (C <= mc)
@@ -267,9 +271,12 @@ def choose_thresholds(cal: list[dict], conflicts: np.ndarray | None = None) -> t
                 v = b2 & (Q <= mr)
                 nv = v.sum()
                 tp = (v & COR).sum()
-                if (nv and tp / nv < 0.995) or (v & ~POS & ~COR).sum() / n_neg > 0.005:
+                if (nv and tp / nv < 0.995) or (v & ~POS & ~COR).sum() / n_neg > max_neg_fpr:
                     continue
-                key = ((v & COR & POS).sum() / n_pos, -mo, -mr, mc)
+                if groups is not None and any((v & g).sum() and (v & g & COR).sum() / (v & g).sum() < 0.995
+                                              for g in G):
+                    continue
+                key = ((v & COR & POS).sum() / n_pos, -mo, -mr, mc if loose_conflict else -mc)
                 if best is None or key > best[0]:
                     best = (key, float(mo), float(mr), float(mc))
     if best is None:
@@ -311,25 +318,42 @@ def reliability(rows: list[dict], coef, valid: np.ndarray, bins: int = 5) -> lis
     return out
 
 
-def lines_only(src: dict, pairs: list[dict], mo: float, mr: float, mc: float, variant: tuple) -> dict:
-    """GraffMatch-lines (poles only) with the verified matcher and the chosen thresholds, on the
-    simulated suites' test pairs (positives and the simulated negatives)."""
-    sel = [p for p in pairs if p["split"] == "test" and p["ds"].startswith("sim") and p["ds2"].startswith("sim")]
+def lines_only(src: dict, pairs: list[dict], variant: tuple) -> tuple[dict, list[dict]]:
+    """GraffMatch-lines (poles only) with its own thresholds: every simulated pair of both splits
+    (positives and the simulated negatives) matched once with the decision open, the thresholds
+    chosen on the calibration split (precision >= 99.5 % on every suite, no valid-and-wrong
+    negative), reported on the test split."""
+    sel = [p for p in pairs if p["ds"].startswith("sim") and p["ds2"].startswith("sim")]
     cfg = GraffMatchConfig(landmark_types=["line"], verification=VerificationConfig(
-        min_overlap=0.0, max_rival_ratio=1.0, min_landmark_overlap=0.0))
+        min_overlap=0.0, max_rival_ratio=1.0, max_conflict=1.0, min_landmark_overlap=0.0, lines_only=None))
     rows = run_pairs(src, sel, cfg)
     for r, c in zip(rows, free_space_conflicts(src, rows, variant), strict=True):
         r["conflict"] = float(c)
-    v = decide(rows, mo, mr, mc)
-    out = {}
-    print(f"\n{'lines only (test split)':<30}{'pairs':>6}{'pos':>5}{'neg':>5}{'valid':>6}{'prec':>7}{'recall':>7}"
-          f"{'oracle':>7}{'FP neg':>8}")
-    for name in sorted({r["ds"] if r["ds"] == r["ds2"] else f"{r['ds']} x {r['ds2']}" for r in rows}):
-        idx = [k for k, r in enumerate(rows) if (r["ds"] if r["ds"] == r["ds2"] else f"{r['ds']} x {r['ds2']}") == name]
-        m = metrics([rows[k] for k in idx], v[idx])
-        out[name] = m
-        print(f"{name + ' lines':<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
-              f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
+    return lines_only_report(rows), rows
+
+
+def lines_only_report(rows: list[dict]) -> dict:
+    """Thresholds on the calibration rows, metrics per suite on both splits."""
+    cal = [r for r in rows if r["split"] == "cal"]
+    groups = np.array([r["ds"] if r["ds"] == r["ds2"] else "cross" for r in cal])
+    mo, mr, mc, _ = choose_thresholds(cal, groups=groups, max_neg_fpr=0.0, loose_conflict=False)
+    out: dict = {"thresholds": {"min_overlap": mo, "max_rival_ratio": mr, "max_conflict": mc},
+                 "calibration": {}, "test": {}}
+    print(f"\nlines only: chosen on the calibration split ({len(cal)} pairs): min_overlap={mo}, "
+          f"max_rival_ratio={mr}, max_conflict={mc}")
+    for split in ("cal", "test"):
+        sub = [r for r in rows if r["split"] == split]
+        v = decide(sub, mo, mr, mc)
+        label = "calibration" if split == "cal" else "test"
+        print(f"{'lines only (' + label + ')':<30}{'pairs':>6}{'pos':>5}{'neg':>5}{'valid':>6}{'prec':>7}"
+              f"{'recall':>7}{'oracle':>7}{'FP neg':>8}")
+        names = [r["ds"] if r["ds"] == r["ds2"] else f"{r['ds']} x {r['ds2']}" for r in sub]
+        for name in [*sorted(set(names)), "ALL"]:
+            idx = [k for k, n in enumerate(names) if name in (n, "ALL")]
+            m = metrics([sub[k] for k in idx], v[idx])
+            out[label][name] = m
+            print(f"{name + ' lines':<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
+                  f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
     return out
 
 
@@ -341,6 +365,8 @@ def main() -> None:
     ap.add_argument("--cross-per", type=int, default=180,
                     help="negatives per pair of datasets (and per dataset, > 60 m apart), half of them test")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--lines-only", action="store_true",
+                    help="only the lines-only pass (rows to OUT/lines_only_rows.json; --json is not written)")
     a = ap.parse_args()
     out = Path(a.out)
     t0 = time.perf_counter()
@@ -348,6 +374,14 @@ def main() -> None:
     print(f"landmarks ready in {time.perf_counter() - t0:.0f} s: "
           + ", ".join(f"{k} {len(v['lms'])}" for k, v in src.items()), flush=True)
     pairs = make_pairs(src, a.max_per, a.cross_per)
+    if a.lines_only:  # the lines-only pass alone, at the configured free-space range image
+        base = VerificationConfig()
+        variant = (base.free_space_az_deg, base.free_space_el_deg, base.free_space_neighbours,
+                   base.free_space_margin, base.free_space_margin_rel)
+        _, lines_rows = lines_only(src, pairs, variant)
+        (out / "lines_only_rows.json").write_text(json.dumps(lines_rows, default=float))
+        print(f"wrote {out / 'lines_only_rows.json'}")
+        return
     open_cfg = GraffMatchConfig(verification=VerificationConfig(min_overlap=0.0, max_rival_ratio=1.0,
                                                                 max_conflict=1.0, min_landmark_overlap=0.0))
     rows = run_pairs(src, pairs, open_cfg)
@@ -401,7 +435,10 @@ def main() -> None:
     if a.json:  # the full matcher's rows first: the lines-only pass below takes a while
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
         Path(a.json).write_text(json.dumps({**report, "rows": rows}, indent=1, default=float))
-    report["lines_only_test"] = lines_only(src, pairs, mo, mr, mc, chosen["variant"])
+    lines, lines_rows = lines_only(src, pairs, chosen["variant"])
+    report["lines_only_thresholds"] = lines["thresholds"]
+    report["lines_only_calibration"] = lines["calibration"]
+    report["lines_only_test"] = lines["test"]
     st = np.array([r["structural"] for r in test])
     lab = np.array([r["correct"] for r in test])
     sc = np.array([r["score"] for r in test])
@@ -418,7 +455,8 @@ def main() -> None:
           f"p95 {report['match_ms']['p95']:.1f} ms over {len(times)} pairs")
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps({**report, "rows": rows}, indent=1, default=float))
+        Path(a.json).write_text(json.dumps({**report, "rows": rows, "lines_only_rows": lines_rows}, indent=1,
+                                           default=float))
         print(f"wrote {a.json}")
 
 

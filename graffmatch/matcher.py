@@ -243,7 +243,8 @@ def _verified_result(source, target, graph, sol, cfg: GraffMatchConfig, timings,
     gate = None if cfg.reject_residual_m is None else (cfg.reject_residual_m, cfg.reject_residual_deg)
     vt: dict[str, float] = {}
     verdict, hyps = verify_graph(
-        source, target, graph.associations, graph.weights.tocsr(), sol.selected, cfg.verification,
+        source, target, graph.associations, graph.weights.tocsr(), sol.selected,
+        cfg.verification.for_landmark_types(cfg.landmark_types),
         cfg.solver, cfg.kappa_max, gate, cfg.min_associations, evidence, vt,
     )
     timings["registration"] = vt.get("registration", 0.0)

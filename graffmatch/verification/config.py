@@ -4,6 +4,20 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
+#: lines-only (min_overlap, max_rival_ratio, max_conflict), from bench/verification.py
+LINES_ONLY = (0.3125, 0.675, 0.2)
+
+
+class DecisionThresholds(BaseModel):
+    """The decision's thresholds for one matching mode (what ``VerificationConfig`` holds for
+    the full landmark sets)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    min_overlap: float = Field(ge=0, le=1, description="the best hypothesis must explain at least this share")
+    max_rival_ratio: float = Field(gt=0, le=1, description="ambiguous above this rival / best score ratio")
+    max_conflict: float = Field(ge=0, le=1, description="invalid above this free-space conflict")
+
 
 class VerificationConfig(BaseModel):
     """Hypothesis generation, evidence and decision.
@@ -37,6 +51,11 @@ class VerificationConfig(BaseModel):
         10.0, gt=0, le=90, description="... pole pairs within this of z get the closed-form yaw (z-up frames) [deg]"
     )
     pair_points: int = Field(128, ge=8, description="... ranked by the occupancy of this many evidence points per scan")
+    pair_align_top: int = Field(
+        8, ge=0,
+        description="... and this many leaders aligned on the evidence points (instead of align_top): a "
+        "tree-lined road slid by a few trees scores like the truth until both are aligned (sim-openroad)",
+    )
     max_hypotheses: int = Field(8, ge=1, description="distinct hypotheses scored exactly (after a fast first pass over all)")
     merge_deg: float = Field(3.0, gt=0, description="hypotheses closer than this rotation merge [deg]")
     merge_m: float = Field(0.5, gt=0, description="... and this translation [m]")
@@ -111,3 +130,17 @@ class VerificationConfig(BaseModel):
         description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio) + c3 * conflict), "
         "fitted on the calibration split of bench/verification.py (conflict 0 without support points)",
     )
+    lines_only: DecisionThresholds | None = Field(
+        default_factory=lambda: DecisionThresholds(min_overlap=LINES_ONLY[0], max_rival_ratio=LINES_ONLY[1],
+                                                   max_conflict=LINES_ONLY[2]),
+        description="replace min_overlap / max_rival_ratio / max_conflict when the matcher matches lines only "
+        "(landmark_types=['line']): poles alone leave more aliased answers that explain the points "
+        "(chosen on the lines-only calibration split of bench/verification.py; None: the same "
+        "thresholds for every mode)",
+    )
+
+    def for_landmark_types(self, types: list[str] | tuple[str, ...]) -> VerificationConfig:
+        """The configuration the decision uses for a matcher restricted to ``types``."""
+        if self.lines_only is None or set(types) != {"line"}:
+            return self
+        return self.model_copy(update=self.lines_only.model_dump())

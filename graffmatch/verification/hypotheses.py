@@ -27,10 +27,13 @@ from graffmatch.verification.config import VerificationConfig
 
 @dataclass
 class Candidate:
-    """A clique (indices into the graph's associations) and where it came from."""
+    """A clique (indices into the graph's associations) and where it came from; ``T_target_source``
+    is the transform it was found by, if any (a pole pair's), which competes as a hypothesis of
+    its own next to the clique's registration."""
 
     vertices: NDArray[np.int64]
     origin: str
+    T_target_source: NDArray[np.float64] | None = None
 
 
 def residuals(
@@ -93,29 +96,31 @@ def reassociate(
 
 def pair_transforms(
     source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64], W: sp.csr_matrix,
-    cfg: VerificationConfig, kappa_max: float,
-) -> NDArray[np.float64]:
+    cfg: VerificationConfig, kappa_max: float, with_edges: bool = False,
+) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Graphs of lines only (poles): the transform of every consistent pair of associations,
     registered on its own (two poles fix the yaw and the horizontal translation).
 
     Dense wrong cliques beat the true one in pole-only graphs (downtown: many poles, regularly
     spaced along the street, agree by chance); this RANSAC-like enumeration over the graph's
     edges reaches the true transform whenever two of its poles are matched. Returns (E, 4, 4)
-    transforms; empty when the graph holds other types or ``pair_hypotheses`` is 0."""
+    transforms (and with ``with_edges`` the (E, 2) association pair of each); empty when the
+    graph holds other types or ``pair_hypotheses`` is 0."""
     none = np.zeros((0, 4, 4))
     m = len(associations)
     if cfg.pair_hypotheses == 0 or m < 2 or np.any(source.types[associations[:, 0]] != LandmarkType.LINE):
-        return none
+        return (none, np.zeros((0, 2), np.int64)) if with_edges else none
     U = sp.triu(W, k=1).tocoo()
     r, c, v = U.row.astype(np.int64), U.col.astype(np.int64), U.data
     keep = (associations[r, 0] != associations[c, 0]) & (associations[r, 1] != associations[c, 1])
     r, c, v = r[keep], c[keep], v[keep]
     if len(r) == 0:
-        return none
+        return (none, np.zeros((0, 2), np.int64)) if with_edges else none
     if len(r) > cfg.pair_max_edges:  # the most consistent edges
         top = np.sort(np.argsort(-v, kind="stable")[: cfg.pair_max_edges])
         r, c = r[top], c[top]
-    Ts, vertical = _vertical_pair_transforms(source, target, associations, r, c, cfg.pair_vertical_deg)
+    Ts, vertical, used = _vertical_pair_transforms(source, target, associations, r, c, cfg.pair_vertical_deg)
+    edges = np.stack([r, c], 1)[vertical][used]
     if not vertical.all():  # other lines: the general registration, upright rule included
         r, c = r[~vertical], c[~vertical]
         E = len(r)
@@ -124,9 +129,11 @@ def pair_transforms(
                                np.repeat(np.arange(E), 2), None, kappa_max, E)
             usable = b.used_line_positions & np.isfinite(b.T_target_source).all(axis=(1, 2))
             Ts = np.concatenate([Ts, b.T_target_source[usable]])
+            edges = np.concatenate([edges, np.stack([r, c], 1)[usable]])
         except DegenerateGeometryError:
             pass
-    return np.ascontiguousarray(Ts)
+    Ts = np.ascontiguousarray(Ts)
+    return (Ts, edges.astype(np.int64)) if with_edges else Ts
 
 
 def line_consensus(
@@ -149,13 +156,14 @@ def line_consensus(
 def _vertical_pair_transforms(
     source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64], r: NDArray[np.int64],
     c: NDArray[np.int64], max_deg: float,
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_]]:
     """Edges whose four lines are within ``max_deg`` of z (poles in z-up frames): the yaw turns
     the source's pole-to-pole vector onto the target's (positions where the axes cross z = 0),
     the horizontal translation matches their midpoints and the height the mean along-axis
     anchor offset, in closed form for all edges at once (the general batched registration costs
-    ~10 us an edge). Returns (transforms of the usable vertical edges, which edges are vertical);
-    edges whose poles are closer than 0.2 m fix no yaw and are dropped."""
+    ~10 us an edge). Returns (transforms of the usable vertical edges, which edges are vertical,
+    which vertical edges are usable); edges whose poles are closer than 0.2 m fix no yaw and are
+    dropped."""
     i = np.stack([r, c], 1)
     ds, dt = source.directions[associations[i, 0]], target.directions[associations[i, 1]]  # (E, 2, 3)
     cos_min = np.cos(np.radians(max_deg))
@@ -174,16 +182,18 @@ def _vertical_pair_transforms(
     T[:, 0, 3] = mt[:, 0] - (co * ms[:, 0] - si * ms[:, 1])
     T[:, 1, 3] = mt[:, 1] - (si * ms[:, 0] + co * ms[:, 1])
     T[:, 2, 3] = (bt[ok, :, 2] - bs[ok, :, 2]).mean(axis=1)
-    return T, vertical
+    return T, vertical, ok
 
 
 def pair_candidates(
     source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64], Ts: NDArray[np.float64],
-    order: NDArray[np.int64], cfg: VerificationConfig,
+    order: NDArray[np.int64], cfg: VerificationConfig, edges: NDArray[np.int64] | None = None,
 ) -> list[Candidate]:
     """The first ``pair_hypotheses`` distinct transforms of ``Ts`` in ``order`` (closer than
     merge_deg / merge_m to an earlier one: skipped), each as the clique of the associations
-    consistent with it (one-to-one; at least 2)."""
+    consistent with it (one-to-one; at least 2), or, when fewer agree and ``edges`` are given,
+    of its own pair: one true pole and a wrong one whose spacing differs by 2 m still give a
+    transform that the points confirm (sim-downtown, bench/verification.py)."""
     R, t = Ts[:, :3, :3], Ts[:, :3, 3]
     out: list[Candidate] = []
     kept = np.zeros(0, np.int64)
@@ -197,8 +207,10 @@ def pair_candidates(
         ok = np.flatnonzero((ang <= cfg.consistent_deg) & (off <= cfg.consistent_m))
         sel = _one_to_one(associations, ok, off[ok])
         if len(sel) < 2:
-            continue
-        out.append(Candidate(np.sort(sel), "pairs"))
+            if edges is None:
+                continue
+            sel = edges[e]
+        out.append(Candidate(np.sort(sel), "pairs", Ts[e]))
         kept = np.r_[kept, e]
         if len(out) >= cfg.pair_hypotheses:
             break

@@ -43,6 +43,7 @@ from graffmatch.verification.hypotheses import (
     pair_candidates,
     pair_transforms,
     reassociate,
+    residuals,
     rival_cliques,
     translation_redundancy,
 )
@@ -90,6 +91,16 @@ def _register(
         h = Hypothesis(b.T_target_source[i], A[lo:hi], c.origin, objectives[i], kappa[i], degenerate[i])
         h.info["vertices"] = c.vertices
         h.info["residuals"] = (b.offset_residuals[lo:hi], b.angle_residuals_deg[lo:hi])
+        if c.T_target_source is not None:  # the pole pair's own transform, first (it wins the
+            # merge of equal cliques): with a wrong but consistent association in the clique, the
+            # clique's least squares can land degrees and metres off where the pair itself was
+            # right (sim-suburban / sim-downtown lines only, bench/verification.py)
+            d = Hypothesis(np.asarray(c.T_target_source, np.float64), A[lo:hi], c.origin + "+pair",
+                           objectives[i], kappa[i], degenerate[i])
+            d.info["vertices"] = c.vertices
+            ang, off = residuals(source, target, A[lo:hi], d.T_target_source)
+            d.info["residuals"] = (off, ang)
+            hyps.append(d)
         hyps.append(h)
     return hyps
 
@@ -192,7 +203,7 @@ def _pair_candidates(source: LandmarkSet, target: LandmarkSet, associations: NDA
     """Pole-pair transforms (lines-only graphs), ranked by the evidence points they explain
     (one vectorised occupancy pass over all of them), or by pole consensus without points
     (which alone favours the street's sliding twins: downtown)."""
-    Ts = pair_transforms(source, target, associations, W, cfg, kappa_max)
+    Ts, edges = pair_transforms(source, target, associations, W, cfg, kappa_max, with_edges=True)
     if len(Ts) == 0:
         return []
     if ev.has_points:
@@ -202,7 +213,7 @@ def _pair_candidates(source: LandmarkSet, target: LandmarkSet, associations: NDA
         count = line_consensus(source, target, associations, Ts, cfg)
         order = np.argsort(-count, kind="stable")
         order = order[count[order] >= 2]
-    return pair_candidates(source, target, associations, Ts, order, cfg)
+    return pair_candidates(source, target, associations, Ts, order, cfg, edges if ev.has_points else None)
 
 
 def _check_free_space(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -> None:
@@ -268,7 +279,8 @@ def verify_graph(
     t0 = time.perf_counter()
     cands = candidate_cliques(W, winner, cfg, solver)
     ev = evidence if evidence is not None else evidence_for(source, target, cfg)
-    cands += _pair_candidates(source, target, associations, W, cfg, kappa_max, ev)
+    pair_cands = _pair_candidates(source, target, associations, W, cfg, kappa_max, ev)
+    cands += pair_cands
     t1 = time.perf_counter()
     hyps = _register(source, target, associations, W, cands, kappa_max)
     t2 = time.perf_counter()
@@ -285,7 +297,10 @@ def verify_graph(
         hyps += _register(source, target, associations, W, rivals, kappa_max)
         tm["hypotheses"] += t4 - t3
         tm["registration"] += time.perf_counter() - t4
-    hyps = merge_hypotheses(hyps, cfg, by="objective")  # collapse near-identical before scoring
+    if not pair_cands:  # collapse near-identical before scoring; pole pairs are ranked by the
+        # points instead: 0.5 deg / 0.2 m from a denser clique is still 0.1 more overlap on a
+        # tree-lined road, where the clique's transform loses to trees slid by one spacing
+        hyps = merge_hypotheses(hyps, cfg, by="objective")
     if gate is not None:
         t4 = time.perf_counter()
         hyps += _register(source, target, associations, W, _gated(hyps, gate, min_associations), kappa_max)
@@ -294,7 +309,8 @@ def verify_graph(
     score_hypotheses(hyps, source, target, ev, cfg, exact=False)
     merged = merge_hypotheses(hyps, cfg)[: cfg.max_hypotheses]
     if ev.has_points:  # stage 2: align the leaders on the evidence points, exact distances
-        for h in merged[: cfg.align_top]:
+        n_align = max(cfg.align_top, cfg.pair_align_top) if pair_cands else cfg.align_top
+        for h in merged[:n_align]:
             T = align_on_evidence(ev.source, ev.target, h.T_target_source)  # type: ignore[arg-type]
             h.info["T_landmarks"] = h.T_target_source
             h.T_target_source = T

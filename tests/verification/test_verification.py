@@ -374,3 +374,49 @@ def test_pair_transforms_contain_the_truth(seed, n_common, n_extra):
     assert hit.any()
     assert count[hit].max() >= n_common
     assert np.all(Ts[:, 2, 2] > 0.999)  # never upside down
+
+
+def test_lines_only_matching_uses_its_own_decision_thresholds():
+    """landmark_types=['line'] decides with ``VerificationConfig.lines_only`` (calibrated on
+    lines-only pairs); every other mode, or lines_only=None, with the full matcher's."""
+    from graffmatch.verification.config import DecisionThresholds, VerificationConfig
+
+    v = VerificationConfig()
+    lines = v.for_landmark_types(["line"])
+    assert (lines.min_overlap, lines.max_rival_ratio, lines.max_conflict) == (
+        v.lines_only.min_overlap, v.lines_only.max_rival_ratio, v.lines_only.max_conflict)
+    assert v.for_landmark_types(["point", "line", "plane"]) is v and v.for_landmark_types(["plane"]) is v
+    assert VerificationConfig(lines_only=None).for_landmark_types(["line"]).min_overlap == v.min_overlap
+
+    rng = np.random.default_rng(0)
+    world = _pole_street(rng)
+    T = make_transform(rot_z(0.1), [0.5, 6.0, 0.0])
+    src, tgt = _street_view(world.transform(invert(T)), rng), _street_view(world, rng)
+    res = GraffMatcher(GraffMatchConfig(landmark_types=["line"])).match(src, tgt)
+    r, t = transform_errors(res.T_target_source, T)
+    assert res.valid and r < 1.0 and t < 0.3, (r, t, res.message)
+    strict = DecisionThresholds(min_overlap=min(res.overlap + 0.05, 1.0), max_rival_ratio=0.9, max_conflict=1.0)
+    cfg = GraffMatchConfig(landmark_types=["line"], verification=VerificationConfig(lines_only=strict))
+    res2 = GraffMatcher(cfg).match(src, tgt)
+    assert not res2.valid and f"< {strict.min_overlap:.2f}" in res2.message
+    # the same strict thresholds leave the full matcher alone
+    full = GraffMatcher(GraffMatchConfig(verification=VerificationConfig(lines_only=strict))).match(src, tgt)
+    assert full.valid == GraffMatcher().match(src, tgt).valid
+
+
+def test_pole_pair_keeps_its_own_transform_and_pair():
+    """A pole pair whose spacing differs by 3 m between the scans (one pole misassociated) is
+    consistent with neither of its own associations (1.5 m off each): it stays a candidate of
+    its two associations when points will judge it, and carries its closed-form transform."""
+    from graffmatch.verification.config import VerificationConfig
+    from graffmatch.verification.hypotheses import pair_candidates
+
+    src = LandmarkSet.from_arrays(np.ones(2, int), np.tile([0, 0, 1.0], (2, 1)), np.array([[0, 0, 2.0], [10, 0, 2.0]]))
+    tgt = LandmarkSet.from_arrays(np.ones(2, int), np.tile([0, 0, 1.0], (2, 1)), np.array([[5, 5, 2.0], [18, 5, 2.0]]))
+    A = np.array([[0, 0], [1, 1]])
+    Ts = make_transform(np.eye(3), [6.5, 5.0, 0.0])[None]  # midpoints matched, yaw 0
+    edges = np.array([[0, 1]])
+    cfg = VerificationConfig()
+    assert pair_candidates(src, tgt, A, Ts, np.array([0]), cfg) == []
+    (c,) = pair_candidates(src, tgt, A, Ts, np.array([0]), cfg, edges)
+    assert c.vertices.tolist() == [0, 1] and np.allclose(c.T_target_source, Ts[0])
