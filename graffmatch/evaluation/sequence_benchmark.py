@@ -256,7 +256,8 @@ def run_sequence_benchmark(
                 run = run_mapclosures_gt(ds, cfg.retrieval, progress=progress)
             elif m == "mapclosures":
                 run = run_mapclosures(ds, cfg.retrieval, progress=progress,
-                                      name="MapClosures (defaults: KISS-ICP odometry, 100 m maps)")
+                                      name="MapClosures (defaults: KISS-ICP odometry, 100 m maps)",
+                                      odometry_file=out_dir / ds.name / "mapclosures" / "kiss_icp_kitti.txt")
             else:
                 raise InvalidInputError(
                     f"unknown method {m!r}; choose ours, scan-context-icp, mapclosures, mapclosures-gt"
@@ -312,7 +313,8 @@ def plot_pr(results: list[dict], out_dir: Path) -> None:
 
 def run_mapclosures(dataset, retrieval: RetrievalConfig, poses: Array | None = None, map_range_m: float = 100.0,
                     progress: Callable | None = None, name: str = "MapClosures",
-                    invert_closure: bool = True, place_gate_m: float = 5.0) -> MethodRun:
+                    invert_closure: bool = True, place_gate_m: float = 5.0,
+                    odometry_file: Path | None = None) -> MethodRun:
     """MapClosures (Gupta et al. 2024), the real package, driven like its own pipeline.
 
     Scans are integrated into local maps (0.5 m voxels, cut every ``map_range_m`` of travel)
@@ -320,7 +322,8 @@ def run_mapclosures(dataset, retrieval: RetrievalConfig, poses: Array | None = N
     does) or the given (ground-truth) poses. Every closure between two local maps becomes a
     prediction for each scan of the later map that the closure places within ``place_gate_m``
     of a scan of the earlier map (the nearest one is the match; the same place gate as ours);
-    confidence = the closure's inlier count.
+    confidence = the closure's inlier count. ``odometry_file``: where the KISS-ICP poses are
+    written (KITTI format, for the pose graph and plots).
     """
     from map_closures.config import MapClosuresConfig
     from map_closures.map_closures import MapClosures
@@ -334,6 +337,11 @@ def run_mapclosures(dataset, retrieval: RetrievalConfig, poses: Array | None = N
         from graffmatch.loops.posegraph import kiss_icp_odometry
 
         P = kiss_icp_odometry(dataset)
+        if odometry_file is not None:
+            from graffmatch.loops.io import write_kitti
+
+            Path(odometry_file).parent.mkdir(parents=True, exist_ok=True)
+            write_kitti(odometry_file, P)
         P = np.stack([invert(P[0]) @ T for T in P])
     else:
         P = np.stack([invert(poses[0]) @ T for T in poses])

@@ -1,0 +1,131 @@
+"""Pose graph on the loop benchmark's drives (issue 15): ATE/RPE before and after, with evo.
+
+    PYTHONPATH=$PWD python bench/bench_loops_posegraph.py --runs /tmp/loops_bench/out \\
+        --json bench/results/loops_posegraph.json --plots docs/img
+
+For every simulated drive of bench/bench_loops.py, the loops that run found (``--runs``:
+its ``--out`` folder, ``<drive>/ours/loops.csv``) go into the GTSAM pose graph together with
+simulated odometry drift (``OdometryDriftConfig``), for several drift seeds and drift models:
+
+* ``default``: the library's default drift (3 deg/100 m heading bias, heading noise
+  0.05 deg/sqrt(m), 0.2 % scale, 0.5 % translation noise);
+* ``no-bias``: the same without the heading bias (noise and scale only);
+* ``bias-neg``: -5 deg/100 m heading bias and a 1 % scale error.
+
+Each is optimised twice: the plain graph (``estimate_odometry_bias=False``) and the default
+graph (a heading-rate bias estimated for the drive). ``oracle`` rows put a ground-truth loop
+edge at every query that has an earlier scan within 5 m (outside the 10 s window): what the
+graph gives with perfect loops, to tell the loops' quality from what the graph can observe.
+ATE = evo's APE RMSE (translation, SE(3)-aligned); RPE over 10 frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine
+
+DRIFTS = {
+    "default": {},
+    "no-bias": {"yaw_bias_deg_per_100m": 0.0},
+    "bias-neg": {"yaw_bias_deg_per_100m": -5.0, "scale_error": 0.01},
+}
+DRIVES = ["sim-downtown-s1", "sim-downtown-s5", "sim-suburban-s1", "sim-suburban-s4", "sim-openroad-s1",
+          "sim-openroad-s3"]
+
+
+def oracle_edges(poses: np.ndarray, timestamps: np.ndarray, window_s: float = 10.0, radius: float = 5.0):
+    """Ground-truth loop edges: each query to its nearest earlier scan within ``radius``."""
+    from graffmatch.geometry.transforms import invert
+
+    edges = []
+    for q in range(len(poses)):
+        d = np.linalg.norm(poses[:q, :3, 3] - poses[q, :3, 3], axis=1)
+        ok = np.flatnonzero((d < radius) & (timestamps[q] - timestamps[:q] > window_s))
+        if ok.size:
+            m = int(ok[np.argmin(d[ok])])
+            edges.append((m, q, invert(poses[m]) @ poses[q], np.diag([1e4] * 3 + [1e6] * 3)))
+    return edges
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=Path("/tmp/loops_bench/data"))
+    ap.add_argument("--runs", type=Path, required=True, help="bench_loops.py --out folder with the loops")
+    ap.add_argument("--drives", nargs="+", default=DRIVES)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--drifts", nargs="+", default=list(DRIFTS), choices=list(DRIFTS))
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--plots", type=Path, default=None, help="trajectory_<drive>.png (default drift, seed 0)")
+    args = ap.parse_args()
+
+    from graffmatch.datasets.registry import open_dataset
+    from graffmatch.loops.io import loop_edges, read_loops_csv
+    from graffmatch.loops.posegraph import (
+        OdometryDriftConfig,
+        PoseGraphConfig,
+        drifted_odometry,
+        optimize_pose_graph,
+        plot_trajectories,
+        trajectory_errors,
+    )
+
+    rows = []
+    t0 = time.perf_counter()
+    for name in args.drives:
+        ds = open_dataset("folder", args.data / name)
+        gt, ts = np.asarray(ds.poses, float), np.asarray(ds.timestamps, float)
+        loops = read_loops_csv(args.runs / name / "ours" / "loops.csv")
+        sources = {"ours": loop_edges(loops), "oracle": oracle_edges(gt, ts)}
+        for drift in args.drifts:
+            for seed in args.seeds:
+                odo = drifted_odometry(gt, OdometryDriftConfig(seed=seed, **DRIFTS[drift]))
+                before = trajectory_errors(odo, gt)
+                for src, edges in sources.items():
+                    if src == "oracle" and seed != args.seeds[0]:
+                        continue
+                    for graph, bias in (("plain", False), ("heading-bias", True)):
+                        t = time.perf_counter()
+                        opt, info = optimize_pose_graph(odo, edges, PoseGraphConfig(estimate_odometry_bias=bias))
+                        after = trajectory_errors(opt, gt)
+                        row = {"drive": name, "drift": drift, "seed": seed, "loops": src, "graph": graph,
+                               "n_loop_edges": len(edges), "first_loop_query": min((e[1] for e in edges), default=None),
+                               "ate_before_m": before["ate_rmse_m"], "ate_after_m": after["ate_rmse_m"],
+                               "ratio": after["ate_rmse_m"] / before["ate_rmse_m"],
+                               "rpe_before_m": before["rpe_rmse_m"], "rpe_after_m": after["rpe_rmse_m"],
+                               "heading_bias_deg_per_100m": info.get("odometry_heading_bias_deg_per_100m"),
+                               "iterations": info["iterations"], "optimize_s": time.perf_counter() - t}
+                        rows.append(row)
+                        print(f"{name:16s} {drift:8s} s{seed} {src:6s} {graph:12s} edges {len(edges):3d} "
+                              f"ATE {row['ate_before_m']:.2f} -> {row['ate_after_m']:.2f} m ({row['ratio']:.2f}) "
+                              f"RPE {row['rpe_before_m']:.3f} -> {row['rpe_after_m']:.3f} m"
+                              + (f" bias {row['heading_bias_deg_per_100m']:+.2f} deg/100m" if bias else ""),
+                              flush=True)
+                        if (args.plots and src == "ours" and bias and drift == "default"
+                                and seed == args.seeds[0]):
+                            args.plots.mkdir(parents=True, exist_ok=True)
+                            plot_trajectories(args.plots / f"loops_trajectory_{name}.png", gt, odo, opt, loops)
+    ours = [r for r in rows if r["loops"] == "ours"]
+    print("\nsummary (ours' loops): ATE after / before, mean and max over seeds")
+    for drift in args.drifts:
+        for name in args.drives:
+            cells = []
+            for graph in ("plain", "heading-bias"):
+                r = [x["ratio"] for x in ours if x["drive"] == name and x["drift"] == drift and x["graph"] == graph]
+                cells.append(f"{graph} {np.mean(r):.2f} (max {np.max(r):.2f})")
+            print(f"  {drift:8s} {name:16s} " + "  ".join(cells))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"machine": machine(), "args": {k: str(v) for k, v in vars(args).items()},
+                                         "wall_s": time.perf_counter() - t0, "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
