@@ -352,6 +352,49 @@ def occupancy_lookup(keys: NDArray[np.int64]) -> tuple:
     return empty, empty, bits, lo, dims
 
 
+def occupancy_bitmap(points: NDArray[np.float64], voxel: float) -> tuple | None:
+    """(origin, table) of the voxels holding a point or touching one by a face, counted from
+    ``origin`` (the cloud's lowest voxel), for :func:`occupied_hits`: what
+    ``occupancy_lookup`` gives for those voxels' :func:`voxel_keys`, built in one compiled
+    pass without the sorted keys. None when the box is too large for the bitmap (then the
+    keys and the hash table answer)."""
+    base = np.floor(np.asarray(points, dtype=np.float64) / voxel)
+    if len(base) == 0 or not np.all(np.isfinite(base)):
+        return None
+    origin = base.min(axis=0)
+    ijk = base - origin  # >= 0; the face neighbours reach -1 .. max + 1
+    top = ijk.max(axis=0)
+    dims = top.astype(np.int64) + 3
+    if float(np.prod(dims.astype(float))) > OCCUPANCY_BITS or top.max() >= (1 << (_KEY_BITS - 1)) - 3:
+        return None
+    bits = np.zeros((int(np.prod(dims)) + 7) // 8, np.uint8)
+    _set_face_bits(ijk.astype(np.int64), dims, bits)
+    empty = np.zeros(0, np.int64)
+    return origin, (empty, empty, bits, np.full(3, -1, np.int64), dims)
+
+
+@nb.njit(cache=True)
+def _set_face_bits(ijk: NDArray[np.int64], dims: NDArray[np.int64], bits: NDArray[np.uint8]) -> None:
+    """Set the bit of each row's voxel and of its six face neighbours (bitmap low corner -1)."""
+    for a in range(ijk.shape[0]):
+        for o in range(7):
+            x, y, z = ijk[a, 0] + 1, ijk[a, 1] + 1, ijk[a, 2] + 1
+            if o == 1:
+                x += 1
+            elif o == 2:
+                x -= 1
+            elif o == 3:
+                y += 1
+            elif o == 4:
+                y -= 1
+            elif o == 5:
+                z += 1
+            elif o == 6:
+                z -= 1
+            f = (x * dims[1] + y) * dims[2] + z
+            bits[f >> 3] |= np.uint8(1 << (f & 7))
+
+
 @nb.njit(cache=True)
 def occupied_hits(P: NDArray[np.float64], Ts: NDArray[np.float64], inverse: bool, voxel: float,
                   origin: NDArray[np.float64], tk: NDArray[np.int64], tv: NDArray[np.int64],
@@ -415,6 +458,102 @@ def _set_near_bits(cells: NDArray[np.int64], dims: NDArray[np.int64], bits: NDAr
                     bits[f >> 3] |= np.uint8(1 << (f & 7))
 
 
+@nb.njit(cache=True)
+def _cells_of(P: NDArray[np.float64], inv_h: float) -> tuple:
+    """(ok, integer cell of each point, lowest cell, highest cell): ok False when a cell is not
+    finite or not below 2^28 in magnitude (the keys and the rounding margin cannot hold it)."""
+    n = P.shape[0]
+    ci = np.empty((n, 3), np.int64)
+    lo = np.zeros(3, np.int64)
+    hi = np.zeros(3, np.int64)
+    if n == 0:
+        return False, ci, lo, hi
+    for a in range(n):
+        for j in range(3):
+            c = np.floor(P[a, j] * inv_h)
+            if not abs(c) < 2.0**28:  # (NaN and inf too)
+                return False, ci, lo, hi
+            k = int(c)
+            ci[a, j] = k
+            if a == 0 or k < lo[j]:
+                lo[j] = k
+            if a == 0 or k > hi[j]:
+                hi[j] = k
+    return True, ci, lo, hi
+
+
+@nb.njit(cache=True)
+def _dense_grid(ci: NDArray[np.int64], origin: NDArray[np.int64], dims: NDArray[np.int64]) -> tuple:
+    """(order, starts, dense) of a grid over a dense table: points sorted by cell in key order,
+    each cell's points in their original order (what a stable argsort of the packed keys gives),
+    the first row of each occupied cell, and each cell's run (-1: empty)."""
+    n = ci.shape[0]
+    dense = np.full(dims[0] * dims[1] * dims[2], -1, np.int32)
+    flat = np.empty(n, np.int64)
+    cell_flat = np.empty(n, np.int64)
+    count = np.zeros(n, np.int64)
+    m = 0
+    for a in range(n):  # cells in order of first appearance
+        f = ((ci[a, 0] - origin[0]) * dims[1] + (ci[a, 1] - origin[1])) * dims[2] + (ci[a, 2] - origin[2])
+        flat[a] = f
+        c = dense[f]
+        if c < 0:
+            c = m
+            dense[f] = m
+            cell_flat[m] = f
+            m += 1
+        count[c] += 1
+    rank = np.argsort(cell_flat[:m])  # distinct values: cells in key order
+    run_of = np.empty(m, np.int64)
+    starts = np.empty(m + 1, np.int64)
+    pos = 0
+    for j in range(m):
+        c = rank[j]
+        run_of[c] = j
+        starts[j] = pos
+        pos += count[c]
+        dense[cell_flat[c]] = j
+    starts[m] = pos
+    fill = starts[:m].copy()
+    order = np.empty(n, np.int64)
+    for a in range(n):  # stable within a cell
+        j = dense[flat[a]]
+        order[fill[j]] = a
+        fill[j] += 1
+    return order, starts, dense
+
+
+@nb.njit(cache=True)
+def _near_box(P: NDArray[np.float64], inv_v: float) -> tuple:
+    """Low corner and dims of the 'near' bitmap: the voxels of the points, one voxel around."""
+    lo = np.zeros(3, np.int64)
+    hi = np.zeros(3, np.int64)
+    for a in range(P.shape[0]):
+        for j in range(3):
+            k = int(np.floor(P[a, j] * inv_v))
+            if a == 0 or k < lo[j]:
+                lo[j] = k
+            if a == 0 or k > hi[j]:
+                hi[j] = k
+    lo -= 1
+    return lo, hi - lo + 2
+
+
+@nb.njit(cache=True)
+def _set_near_bits_of(P: NDArray[np.float64], inv_v: float, lo: NDArray[np.int64], dims: NDArray[np.int64],
+                      bits: NDArray[np.uint8]) -> None:
+    """:func:`_set_near_bits` of the points' voxels (relative to ``lo``), without the arrays."""
+    for a in range(P.shape[0]):
+        x = int(np.floor(P[a, 0] * inv_v)) - lo[0]
+        y = int(np.floor(P[a, 1] * inv_v)) - lo[1]
+        z = int(np.floor(P[a, 2] * inv_v)) - lo[2]
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                for dz in range(-1, 2):
+                    f = ((x + dx) * dims[1] + (y + dy)) * dims[2] + (z + dz)
+                    bits[f >> 3] |= np.uint8(1 << (f & 7))
+
+
 class CellHash:
     """Points of one cloud bucketed by cells of twice the radius (slightly more), found through
     a dense table over the cloud's box when that is small (<= ``_DENSE_MAX`` cells), else a hash.
@@ -427,33 +566,62 @@ class CellHash:
         self._near: tuple | None = None
         self.h = 2.0 * self.radius * (1.0 + _GRID_MARGIN)
         self.inv_h = 1.0 / self.h
-        c = np.floor(points * self.inv_h)
+        P = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         # Coordinates that the cell keys or the rounding margin cannot represent: no hash.
-        self.ok = bool(len(points) and np.all(np.isfinite(c)) and np.abs(c).max() < 2.0**28)
+        ok, ci, lo, hi = _cells_of(P, self.inv_h)
+        self.ok = bool(ok)
         if not self.ok:
             return
+        self.origin = lo - 1
+        self.dims = hi - self.origin + 2
+        if self.dims.max() >= _GRID_LIM:
+            self.ok = False
+            return
+        if np.prod(self.dims.astype(float)) <= _DENSE_MAX:  # one compiled pass: counting sort by cell
+            self.order, self.starts, self.dense = _dense_grid(ci, self.origin, self.dims)
+            self.points = P[self.order]
+            self.tk, self.tv = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        else:
+            self._hashed(P, ci - self.origin)
+
+    def _hashed(self, P: NDArray[np.float64], ci: NDArray[np.int64]) -> None:
+        """The grid through a hash of the occupied cells (boxes too large for a dense table)."""
+        key = (ci[:, 0] << (2 * _GRID_BITS)) | (ci[:, 1] << _GRID_BITS) | ci[:, 2]
+        self.order = np.argsort(key, kind="stable")
+        self.points = np.ascontiguousarray(P[self.order])  # cell by cell
+        ks = key[self.order]
+        first = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
+        self.starts = np.r_[first, len(ks)].astype(np.int64)
+        self.dense = np.zeros(0, np.int32)
+        self.tk, self.tv = hash_table(ks[first])
+
+    @classmethod
+    def _reference(cls, points: NDArray[np.float64], radius: float, dense_max: int | None = None) -> CellHash:
+        """numpy specification of the constructor (cells by a stable argsort of packed keys)."""
+        self = cls.__new__(cls)
+        self.radius = float(radius)
+        self._near = None
+        self.h = 2.0 * self.radius * (1.0 + _GRID_MARGIN)
+        self.inv_h = 1.0 / self.h
+        c = np.floor(points * self.inv_h)
+        self.ok = bool(len(points) and np.all(np.isfinite(c)) and np.abs(c).max() < 2.0**28)
+        if not self.ok:
+            return self
         ci = c.astype(np.int64)
         self.origin = ci.min(axis=0) - 1
         ci -= self.origin
         self.dims = ci.max(axis=0) + 2
         if self.dims.max() >= _GRID_LIM:
             self.ok = False
-            return
-        key = (ci[:, 0] << (2 * _GRID_BITS)) | (ci[:, 1] << _GRID_BITS) | ci[:, 2]
-        self.order = np.argsort(key, kind="stable")
-        self.points = np.ascontiguousarray(points[self.order], dtype=np.float64)  # cell by cell
-        ks = key[self.order]
-        first = np.flatnonzero(np.r_[True, ks[1:] != ks[:-1]])
-        self.starts = np.r_[first, len(ks)].astype(np.int64)
-        empty = np.zeros(0, np.int64)
-        if np.prod(self.dims.astype(float)) <= _DENSE_MAX:
+            return self
+        self._hashed(np.asarray(points, dtype=np.float64), ci)
+        if np.prod(self.dims.astype(float)) <= (_DENSE_MAX if dense_max is None else dense_max):
+            first = self.starts[:-1]
             cc = ci[self.order[first]]
             self.dense = np.full(int(np.prod(self.dims)), -1, np.int32)
             self.dense[(cc[:, 0] * self.dims[1] + cc[:, 1]) * self.dims[2] + cc[:, 2]] = np.arange(len(first))
-            self.tk, self.tv = empty, empty
-        else:
-            self.dense = np.zeros(0, np.int32)
-            self.tk, self.tv = hash_table(ks[first])
+            self.tk, self.tv = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return self
 
     def _grid(self) -> tuple:
         """The arguments the kernels take for this grid (after the query points)."""
@@ -484,16 +652,26 @@ class CellHash:
         on first use; empty (every query searched) when the box has more than ``NEAR_BITS`` voxels."""
         if self._near is None:
             v = self.radius * (1.0 + 1e-6)
-            base = np.floor(self.points * (1.0 / v)).astype(np.int64)
-            lo = base.min(axis=0) - 1
-            dims = base.max(axis=0) - lo + 2
+            lo, dims = _near_box(self.points, 1.0 / v)
             if float(np.prod(dims.astype(float))) > NEAR_BITS:  # too large: no filter
                 self._near = (np.zeros(0, np.uint8), lo, dims, 1.0 / v)
                 return self._near
             bits = np.zeros((int(np.prod(dims)) + 7) // 8, np.uint8)
-            _set_near_bits(np.ascontiguousarray(base - lo), dims, bits)
+            _set_near_bits_of(self.points, 1.0 / v, lo, dims, bits)
             self._near = (bits, lo, dims, 1.0 / v)
         return self._near
+
+    def _near_bitmap_reference(self) -> tuple:
+        """numpy specification of :meth:`near_bitmap` (a fresh bitmap, not cached)."""
+        v = self.radius * (1.0 + 1e-6)
+        base = np.floor(self.points * (1.0 / v)).astype(np.int64)
+        lo = base.min(axis=0) - 1
+        dims = base.max(axis=0) - lo + 2
+        if float(np.prod(dims.astype(float))) > NEAR_BITS:
+            return np.zeros(0, np.uint8), lo, dims, 1.0 / v
+        bits = np.zeros((int(np.prod(dims)) + 7) // 8, np.uint8)
+        _set_near_bits(np.ascontiguousarray(base - lo), dims, bits)
+        return bits, lo, dims, 1.0 / v
 
     def align_step(self, P: NDArray[np.float64], T: NDArray[np.float64], min_pairs: int = 10) -> int:
         """One nearest-neighbour rigid alignment step of ``P`` (C-contiguous float64) onto this

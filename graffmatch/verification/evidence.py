@@ -27,7 +27,14 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
-from graffmatch.verification.cell_hash import CellHash, occupancy_lookup, occupied_hits, voxel_keys
+from graffmatch.verification.cell_hash import (
+    CellHash,
+    _slot,
+    occupancy_bitmap,
+    occupancy_lookup,
+    occupied_hits,
+    voxel_keys,
+)
 from graffmatch.verification.free_space import RangeImage
 
 
@@ -48,6 +55,7 @@ class SupportCloud:
     _tree: cKDTree | None = field(default=None, repr=False)
     _hashes: dict = field(default_factory=dict, repr=False)
     _occ_table: tuple | None = field(default=None, repr=False)
+    _occ_table_voxel: float = field(default=0.0, repr=False)
     _range_images: dict = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
@@ -99,15 +107,20 @@ class SupportCloud:
             keys, inside = voxel_keys(pts.reshape(-1, 3), voxel, self.occupancy_origin)
             self.occupancy = np.unique(keys[inside])
             self.occupancy_voxel = voxel
-            self._occ_table = None
         return self.occupancy
 
     def occupied_table(self, voxel: float) -> tuple:
-        """The occupied voxel keys for :func:`occupied_hits`: a bitmap over their box when it
-        has at most ``OCCUPANCY_BITS`` voxels (a few cycles a lookup), else a hash table."""
-        occ = self.occupied(voxel)
-        if self._occ_table is None:
-            self._occ_table = occupancy_lookup(occ)
+        """The occupied voxels for :func:`occupied_hits` (sets ``occupancy_origin``): a bitmap
+        over their box when it has at most ``OCCUPANCY_BITS`` voxels (a few cycles a lookup;
+        built straight from the points, :func:`occupancy_bitmap`), else a hash table of the
+        sorted keys of :meth:`occupied`. Built once per voxel size."""
+        if self._occ_table is None or self._occ_table_voxel != voxel:
+            built = occupancy_bitmap(self.points, voxel)
+            if built is None:
+                table = occupancy_lookup(self.occupied(voxel))
+            else:
+                self.occupancy_origin, table = built
+            self._occ_table, self._occ_table_voxel = table, voxel
         return self._occ_table
 
 
@@ -158,13 +171,40 @@ def voxel_downsample(points: NDArray, voxel: float, max_points: int) -> NDArray[
     dims = keys.max(axis=0) + 1
     if np.prod(dims.astype(float)) < 2**62:
         flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-        _, first = np.unique(flat, return_index=True)
+        P = P[first_of_each(flat)]
     else:  # absurd extents: fall back to row-unique
         _, first = np.unique(keys, axis=0, return_index=True)
-    P = P[np.sort(first)]
+        P = P[np.sort(first)]
     if len(P) > max_points:
         P = P[np.linspace(0, len(P) - 1, max_points).astype(np.int64)]
     return P
+
+
+@nb.njit(cache=True)
+def first_of_each(keys: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Whether each entry of ``keys`` (non-negative) is the first with its value: what
+    ``np.sort(np.unique(keys, return_index=True)[1])`` selects, in one pass over an
+    open-addressing set instead of a sort."""
+    n = keys.shape[0]
+    cap = 8
+    while cap < 4 * n:
+        cap *= 2
+    table = np.full(cap, -1, np.int64)
+    mask = cap - 1
+    out = np.zeros(n, np.bool_)
+    for i in range(n):
+        k = keys[i]
+        s = _slot(k, mask)
+        while True:
+            t = table[s]
+            if t == k:
+                break
+            if t == -1:
+                table[s] = k
+                out[i] = True
+                break
+            s = (s + 1) & mask
+    return out
 
 
 def non_ground_support(landmarks: LandmarkSet) -> NDArray[np.float32] | None:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import minimum_filter
@@ -40,6 +41,20 @@ class RangeImage:
     @classmethod
     def from_points(cls, points: NDArray, az_deg: float = 1.0, el_deg: float = 1.0,
                     neighbours: int = 1) -> RangeImage:
+        na, ne = int(round(360.0 / az_deg)), int(round(180.0 / el_deg))
+        img = np.full((na, ne), np.inf)
+        P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        P = P[np.isfinite(P).all(axis=1)]
+        if len(P):
+            a, e, r = _cells(P, az_deg, el_deg, na, ne)
+            _spread_min(a, e, r, int(neighbours), img)
+        return cls(img, az_deg, el_deg)
+
+    @classmethod
+    def _from_points_reference(cls, points: NDArray, az_deg: float = 1.0, el_deg: float = 1.0,
+                               neighbours: int = 1) -> RangeImage:
+        """numpy / scipy specification of :meth:`from_points` (per-cell minimum, then a
+        minimum filter wrapping in azimuth and clamped in elevation)."""
         na, ne = int(round(360.0 / az_deg)), int(round(180.0 / el_deg))
         img = np.full((na, ne), np.inf)
         P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -73,6 +88,23 @@ def _cells(P: NDArray[np.float64], az_deg: float, el_deg: float, na: int, ne: in
     a = (np.floor((np.degrees(np.arctan2(P[:, 1], P[:, 0])) + 180.0) / az_deg).astype(np.int64)) % na
     e = np.clip(np.floor((np.degrees(np.arctan2(P[:, 2], r)) + 90.0) / el_deg).astype(np.int64), 0, ne - 1)
     return a, e, r
+
+
+@nb.njit(cache=True)
+def _spread_min(a: NDArray[np.int64], e: NDArray[np.int64], r: NDArray[np.float64], k: int,
+                img: NDArray[np.float64]) -> None:
+    """Lower every cell within ``k`` cells of each point's (wrapping in azimuth, elevation cells
+    inside the image) to the point's range: the per-cell minimum and the (2k+1)^2 minimum
+    filter of :meth:`RangeImage._from_points_reference` in one pass over the points (a cell's
+    filtered value is the minimum over the points whose cell lies within k of it; clamping the
+    elevation at the border only repeats cells inside that window)."""
+    na, ne = img.shape
+    for p in range(a.shape[0]):
+        for da in range(-k, k + 1):
+            ai = (a[p] + da) % na
+            for de in range(max(e[p] - k, 0), min(e[p] + k, ne - 1) + 1):
+                if r[p] < img[ai, de]:
+                    img[ai, de] = r[p]
 
 
 def conflict_fraction(

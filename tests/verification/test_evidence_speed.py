@@ -69,7 +69,7 @@ def test_moved_hit_counts_equal_kdtree(seed, scale, offset, r):
         for k, T in enumerate(Ts):
             R, t = (T[:3, :3].T, -T[:3, :3].T @ T[:3, 3]) if inverse else (T[:3, :3], T[:3, 3])
             assert got[k] == np.count_nonzero(_kd_idx(P, Q @ R.T + t, r) >= 0)
-    if scale / r < 100:  # a box of < ~2e6 voxels: the filter is built and exercised
+    if scale / r < 50:  # a box of < ~5e6 voxels (planes reach ~1.7 scale out): the filter is built and exercised
         assert len(h.near_bitmap()[0]) > 0
 
 
@@ -223,3 +223,79 @@ def test_landmark_overlap_equals_the_numpy_reference(seed, n_poles, n_planes, H,
     np.testing.assert_array_equal(c_new[0], c_ref[0])
     one = E.landmark_overlap(sc.source, sc.target, Ts[0])
     assert one.shape == (2,) and np.allclose(one, ref[0], rtol=0, atol=1e-12)
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 300), scale=st.sampled_from([0.5, 5.0, 50.0]),
+       offset=st.sampled_from([0.0, -37.3, 1e5]), voxel=st.sampled_from([0.1, 0.3, 0.77]))
+def test_occupancy_bitmap_equals_the_table_of_the_sorted_keys(seed, n, scale, offset, voxel):
+    """The bitmap built straight from the points is bit for bit the one built from the sorted
+    voxel keys (same origin, low corner and dims)."""
+    P = _cloud(np.random.default_rng(seed), max(n, 6), scale, offset)
+    built = cell_hash.occupancy_bitmap(P, voxel)
+    ref_cloud = E.SupportCloud(P)
+    ref = cell_hash.occupancy_lookup(ref_cloud.occupied(voxel))
+    if len(ref[2]) == 0:  # too large for a bitmap: both take the hash table
+        assert built is None
+        return
+    origin, table = built
+    np.testing.assert_array_equal(origin, ref_cloud.occupancy_origin)
+    for got, want in zip(table, ref, strict=True):
+        np.testing.assert_array_equal(got, want)
+    assert np.count_nonzero(table[2]) > 0
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(0, 400), neighbours=st.integers(0, 3),
+       cell=st.sampled_from([(1.0, 1.0), (2.0, 0.5), (30.0, 30.0), (7.0, 3.0)]))
+def test_range_image_equals_the_minimum_filter_reference(seed, n, neighbours, cell):
+    from graffmatch.verification.free_space import RangeImage
+
+    rng = np.random.default_rng(seed)
+    P = rng.normal(scale=20.0, size=(n, 3))
+    P[: n // 4, 2] = rng.choice([-1e3, 1e3], n // 4)  # elevations at the image's top and bottom rows
+    if n > 2:
+        P[0] = [np.nan, 0.0, 0.0]
+    got = RangeImage.from_points(P, *cell, neighbours)
+    want = RangeImage._from_points_reference(P, *cell, neighbours)
+    np.testing.assert_array_equal(got.ranges, want.ranges)
+    assert n < 3 or np.isfinite(got.ranges).sum() >= min(n // 2, 1)
+
+
+@SETTINGS
+@given(keys=st.lists(st.integers(0, 2**62 - 1) | st.integers(0, 20), max_size=300))
+def test_first_of_each_equals_numpy_unique(keys):
+    k = np.array(keys, dtype=np.int64)
+    want = np.zeros(len(k), bool)
+    want[np.unique(k, return_index=True)[1]] = True
+    np.testing.assert_array_equal(E.first_of_each(k), want)
+
+
+def test_voxel_downsample_keeps_the_first_point_of_each_voxel():
+    rng = np.random.default_rng(2)
+    P = np.r_[rng.uniform(-20, 20, (3000, 3)), [[np.nan, 0, 0]]]
+    got = E.voxel_downsample(P, 0.7, 10**6)
+    keys = np.floor(P[:-1] / 0.7).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    np.testing.assert_array_equal(got, P[np.sort(first)])
+    assert 1000 < len(got) < 3000
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(0, 400), scale=st.sampled_from([0.5, 5.0, 50.0, 3e3]),
+       offset=st.sampled_from([0.0, -37.3, 5e4, 1e9]), r=st.floats(0.05, 2.0), bad=st.booleans())
+def test_compiled_cell_hash_build_equals_the_numpy_build(seed, n, scale, offset, r, bad):
+    """Same cells, order, runs, dense table or hash, and 'near' bitmap as the argsort build."""
+    P = _cloud(np.random.default_rng(seed), n, scale, offset) if n else np.zeros((0, 3))
+    if bad and len(P):
+        P[len(P) // 2, 1] = np.nan
+    got, want = E.CellHash(P, r), E.CellHash._reference(P, r)
+    assert got.ok == want.ok
+    if not want.ok:
+        return
+    for name in ("origin", "dims", "order", "points", "starts", "dense", "tk"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+    np.testing.assert_array_equal(got.tv[got.tk >= 0], want.tv[want.tk >= 0])  # (other slots unset)
+    for g, w in zip(got.near_bitmap(), want._near_bitmap_reference(), strict=True):
+        np.testing.assert_array_equal(g, w)
+    assert len(got.dense) > 0 or len(got.tk) > 0
