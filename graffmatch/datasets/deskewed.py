@@ -1,0 +1,70 @@
+"""A drive whose scans are de-skewed on read, with the motion of an odometry.
+
+Raw scans of a moving spinning LiDAR are distorted by up to metres (see
+:mod:`graffmatch.lidar.deskew`); matched as they are, two scans taken in a turn have no rigid
+transform that is right to the metre. Wrap the drive before extracting landmarks:
+
+    drive = Deskewed(open_dataset("sim", "/data/drive"), odometry)
+
+``motion_poses`` are any poses whose *relative* motion between neighbouring scans is right:
+an odometry (KISS-ICP, wheel, a drifting estimate), or the ground truth. Do not wrap KITTI
+odometry: its scans ship de-skewed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from graffmatch.datasets.base import Dataset, Scan
+from graffmatch.errors import InvalidInputError
+from graffmatch.lidar.deskew import deskew_in_sequence
+
+
+class Deskewed:
+    """``dataset`` with every scan moved into its mid-sweep frame (constant velocity between
+    the neighbouring ``motion_poses``; default: the dataset's own poses). Poses, times, paths
+    and labels are the dataset's; only the points change."""
+
+    def __init__(self, dataset: Dataset, motion_poses: ArrayLike | None = None) -> None:
+        n = len(dataset)
+        poses = np.asarray(dataset.poses if motion_poses is None else motion_poses, dtype=float)
+        if poses.shape != (n, 4, 4) or not np.all(np.isfinite(poses)):
+            raise InvalidInputError(
+                f"motion_poses must be ({n}, 4, 4) finite poses for {getattr(dataset, 'name', 'the dataset')}, "
+                f"got shape {poses.shape}"
+            )
+        self.dataset = dataset
+        self.motion_poses = poses
+        #: a different name, so caches keyed by it never mix raw and de-skewed landmarks
+        self.name = f"{getattr(dataset, 'name', 'dataset')}+deskew"
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, i: int) -> Scan:
+        scan = self.dataset[i]
+        pts = deskew_in_sequence(scan.points, self.motion_poses, scan.index).astype(scan.points.dtype)
+        return Scan(pts, scan.labels, scan.T_world_lidar, scan.timestamp, scan.index, scan.path)
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+    @property
+    def poses(self) -> NDArray[np.float64]:
+        return self.dataset.poses
+
+    @property
+    def timestamps(self) -> NDArray[np.float64]:
+        return np.asarray(getattr(self.dataset, "timestamps", np.arange(len(self), dtype=float)), float)
+
+    def scan_path(self, i: int) -> Path:
+        return self.dataset.scan_path(i)
+
+    def label_path(self, i: int) -> Path | None:
+        return self.dataset.label_path(i)
+
+    def __repr__(self) -> str:
+        return f"Deskewed({self.dataset!r})"
