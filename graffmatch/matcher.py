@@ -361,12 +361,12 @@ class GraffMatcher:
             inv_t[tgt_idx] = np.arange(len(tgt_idx))
             A = np.stack([inv_s[A[:, 0]], inv_t[A[:, 1]]], 1)
             associations = A[(A >= 0).all(1)]
-        else:
-            associations = putative_associations(src, tgt, cfg.gating)  # None: all same-type
         if len(src) < 2 or len(tgt) < 2:
             raise InvalidInputError(
                 f"too few landmarks of types {cfg.landmark_types}: source {len(src)}, target {len(tgt)}"
             )
+        if associations is None:
+            associations = putative_associations(src, tgt, cfg.gating)  # None: all same-type
         t0 = time.perf_counter()
         D_s = self.distance_matrix(src)
         D_t = self.distance_matrix(tgt)

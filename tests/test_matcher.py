@@ -78,6 +78,14 @@ def test_bad_input_raises():
         GraffMatcher(GraffMatchConfig(landmark_types=["line"])).match(sc.source, sc.target)
     with pytest.raises(Exception):  # pydantic validation
         GraffMatchConfig(epsilon=-1)
+    # planes with a ground flag but no pole, matched as lines only: our error, not numpy's
+    # (the ground-tilt gate once reshaped the empty filtered set)
+    planes = LandmarkSet.from_arrays(
+        ["plane"] * 3, np.eye(3), np.eye(3) * 5.0,
+        attributes={"is_ground": np.array([1.0, 0.0, 0.0])},
+    )
+    with pytest.raises(InvalidInputError, match="too few landmarks of types"):
+        GraffMatcher(GraffMatchConfig(landmark_types=["line"])).match(planes, sc.target)
 
 
 def test_translation_beyond_landmark_reach_is_flagged():

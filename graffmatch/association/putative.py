@@ -98,7 +98,7 @@ class GatingConfig(BaseModel):
 def _ground_tilt_deg(ls: LandmarkSet, directions: NDArray[np.float64]) -> float:
     """Tilt of the scan's ground normal to its z axis [deg]; inf without a ground landmark."""
     g = ls.attributes.get("is_ground")
-    if g is None:
+    if g is None or len(ls) == 0:
         return float("inf")
     idx = np.flatnonzero((np.asarray(g, dtype=float).reshape(len(ls), -1)[:, 0] > 0.5)
                         & (ls.types == LandmarkType.PLANE))
