@@ -5,11 +5,12 @@ if ``c = |D_i[a, a'] - D_j[b, b']| < epsilon``; the edge weight is ``exp(-c^2 / 
 The graph is one-to-one: no edge when a == a' or b == b'.
 
 Every consistency comes from the two intra-scan matrices (computed once per scan, O(n^2)); no
-distance is ever computed per association pair. The edges are found per source landmark pair
-(a, a') by a binary search in the sorted target pair distances of the same type combination, so
-the work is proportional to the number of candidate edges, and the graph is written straight
-into a symmetric CSR matrix, row by row. An explicit association list (a subset, e.g. gated
-associations) takes the same path through a lookup table. No dense m x m matrix is allocated.
+distance is ever computed per association pair. Row u = (a, b) of the graph is found by a binary
+search, per other source landmark a', in b's distances to the target landmarks of a''s type,
+sorted once per scan, so the work is proportional to the edges (plus m x n_i searches), and each
+row is written once, in order, straight into the symmetric CSR arrays. An explicit association
+list (a subset, e.g. gated associations) takes the same path through a lookup table. No dense
+m x m matrix is allocated.
 """
 
 from __future__ import annotations
@@ -68,92 +69,64 @@ class ConsistencyGraph:
 
 
 @nb.njit(cache=True)
-def _sorted_pair_tables(D_j, types_j, n_types):
-    """Target ordered pairs (b, b'), b != b', grouped by (type b, type b') and sorted by distance.
-
-    Returns (values, b, b2, group_start) with group g = t1 * n_types + t2."""
+def _row_pair_tables(D_j, groups_j, n_groups):
+    """For every target landmark b and group t: the b2 != b of group t sorted by D_j[b, b2]
+    (stable, so ties stay in b2 order). Returns (values, b2, start) with the run of (b, t) at
+    start[b, t]:start[b, t + 1]."""
     n = D_j.shape[0]
-    n_groups = n_types * n_types
-    counts = np.zeros(n_groups + 1, dtype=np.int64)
+    gcount = np.zeros(n_groups, dtype=np.int64)
+    for b2 in range(n):
+        gcount[groups_j[b2]] += 1
+    start = np.empty((n, n_groups + 1), dtype=np.int64)
+    total = 0
     for b in range(n):
-        for b2 in range(n):
-            if b != b2:
-                counts[types_j[b] * n_types + types_j[b2] + 1] += 1
-    start = np.cumsum(counts)
-    total = start[-1]
+        for t in range(n_groups):
+            start[b, t] = total
+            total += gcount[t] - (groups_j[b] == t)
+        start[b, n_groups] = total
     vals = np.empty(total)
-    bs = np.empty(total, dtype=np.int64)
     b2s = np.empty(total, dtype=np.int64)
-    fill = start[:-1].copy()
+    fill = np.empty(n_groups, dtype=np.int64)
     for b in range(n):
+        for t in range(n_groups):
+            fill[t] = start[b, t]
         for b2 in range(n):
-            if b != b2:
-                g = types_j[b] * n_types + types_j[b2]
-                k = fill[g]
+            if b2 != b:
+                k = fill[groups_j[b2]]
                 vals[k] = D_j[b, b2]
-                bs[k] = b
                 b2s[k] = b2
-                fill[g] += 1
-    for g in range(n_groups):
-        lo, hi = start[g], start[g + 1]
-        order = np.argsort(vals[lo:hi], kind="mergesort")
-        vals[lo:hi] = vals[lo:hi][order]
-        bs[lo:hi] = bs[lo:hi][order]
-        b2s[lo:hi] = b2s[lo:hi][order]
-    return vals, bs, b2s, start
+                fill[groups_j[b2]] = k + 1
+        for t in range(n_groups):
+            lo, hi = start[b, t], start[b, t + 1]
+            order = np.argsort(vals[lo:hi], kind="mergesort")
+            vals[lo:hi] = vals[lo:hi][order]
+            b2s[lo:hi] = b2s[lo:hi][order]
+    return vals, b2s, start
 
 
 @nb.njit(cache=True)
-def _rows_pass(D_i, groups_i, vals, bs, b2s, start, lookup, epsilon, inv_two_sigma2, n_groups,
-               fill, deg, indices, data, cursor, squarings):
-    """One sweep over the ordered source landmark pairs (a, a') and their target windows.
-
-    Each edge (u, v) is found twice, from (a, a') and from (a', a), and each time only row u
-    (an association of a) is written: while a is fixed, the writes stream into the few rows of
-    a, so the fill is cache-friendly instead of scattering into 2 x edges random places.
-    First sweep (``fill`` False) counts the row lengths into ``deg[u + 1]``; the second writes
-    at ``cursor`` (the row starts)."""
-    n_i = D_i.shape[0]
-    longest = 0
-    for g in range(start.shape[0] - 1):
-        longest = max(longest, start[g + 1] - start[g])
-    buf_pos = np.empty(longest if fill else 0, dtype=np.int64)
-    buf_x = np.empty(longest if fill else 0)
-    buf_w = np.empty(longest if fill else 0)
-    for a in range(n_i):
-        for a2 in range(n_i):
-            if a2 == a:
-                continue
-            g = groups_i[a] * n_groups + groups_i[a2]
-            lo, hi = start[g], start[g + 1]
-            if lo == hi:
-                continue
-            d = D_i[a, a2]
-            k0 = lo + np.searchsorted(vals[lo:hi], d - epsilon, side="right")
-            k1 = lo + np.searchsorted(vals[lo:hi], d + epsilon, side="left")
-            n_new = 0
-            for k in range(k0, k1):
-                u = lookup[a, bs[k]]
-                if u < 0:
-                    continue
-                v = lookup[a2, b2s[k]]
-                if v < 0:
-                    continue
-                if not fill:
-                    deg[u + 1] += 1
-                    continue
-                pos = cursor[u]
-                indices[pos] = v
-                cursor[u] = pos + 1
-                buf_pos[n_new] = pos
-                c = d - vals[k]
-                buf_x[n_new] = -c * c * inv_two_sigma2
-                n_new += 1
-            if n_new:
-                # the window's weights in one branch-free (vectorised) loop, then scattered
-                _exp_nonpositive(buf_x, buf_w, n_new, squarings)
-                for t in range(n_new):
-                    data[buf_pos[t]] = buf_w[t]
+def _row_windows(src_vals, src_a2s, src_start, vals, start, a, b, n_groups, epsilon, win0, win1):
+    """For row u = (a, b): the run [win0[a2], win1[a2]) of target pairs (b, b2) whose distance
+    is within epsilon of D_i[a, a2], for every a2 != a (np.searchsorted's 'right' of
+    d - epsilon and 'left' of d + epsilon). The a2 of each group come in ascending distance
+    (``src_*``: :func:`_row_pair_tables` of the source), so both ends only move forward: one
+    merge of two sorted runs per group instead of two binary searches per a2."""
+    for t in range(n_groups):
+        lo, hi = start[b, t], start[b, t + 1]
+        k0 = lo
+        k1 = lo
+        for s in range(src_start[a, t], src_start[a, t + 1]):
+            d = src_vals[s]
+            x0 = d - epsilon
+            x1 = d + epsilon
+            while k0 < hi and vals[k0] <= x0:
+                k0 += 1
+            if k1 < k0:
+                k1 = k0
+            while k1 < hi and vals[k1] < x1:
+                k1 += 1
+            win0[src_a2s[s]] = k0
+            win1[src_a2s[s]] = k1
 
 
 @nb.njit(cache=True, fastmath=True)
@@ -187,22 +160,61 @@ def _squarings(epsilon: float, inv_two_sigma2: float) -> int:
 
 
 @nb.njit(cache=True)
-def _build(D_i, D_j, groups_i, groups_j, lookup, m, epsilon, inv_two_sigma2, n_groups, weights, index,
-           squarings):
-    """Symmetric CSR (indptr, indices, data) of the graph over the associations in ``lookup``
+def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_two_sigma2, n_groups, weights,
+           index, squarings):
+    """Symmetric CSR (indptr, indices, data) of the graph over the associations ``assoc``
     (``lookup[a, b]`` = vertex id or -1), with ``index``'s and ``weights``' dtypes (empty
-    arrays). An association (a, b) may only join landmarks of the same group; target pairs are
-    sorted per group pair, so each source pair scans one window."""
-    vals, bs, b2s, start = _sorted_pair_tables(D_j, groups_j, n_groups)
-    deg = np.zeros(m + 1, dtype=np.int64)
-    _rows_pass(D_i, groups_i, vals, bs, b2s, start, lookup, epsilon, inv_two_sigma2, n_groups,
-               False, deg, index, weights, deg, squarings)
-    indptr = np.cumsum(deg)
-    indices = np.empty(indptr[-1], dtype=index.dtype)
-    data = np.empty(indptr[-1], dtype=weights.dtype)
-    cursor = indptr[:-1].copy()
-    _rows_pass(D_i, groups_i, vals, bs, b2s, start, lookup, epsilon, inv_two_sigma2, n_groups,
-               True, deg, indices, data, cursor, squarings)
+    arrays), written row by row: row u = (a, b) takes, for every other source landmark a2 of
+    group t, the window of b's sorted distances to group t within epsilon of D_i[a, a2]. Each
+    row is written once, in order (no scattered writes); a first pass counts the row lengths
+    (with ``all_valid``, every same-group pair is an association: the window sizes)."""
+    m = assoc.shape[0]
+    n_i = D_i.shape[0]
+    vals, b2s, start = _row_pair_tables(D_j, groups_j, n_groups)
+    src_vals, src_a2s, src_start = _row_pair_tables(D_i, groups_i, n_groups)
+    win0 = np.zeros(n_i, dtype=np.int64)
+    win1 = np.zeros(n_i, dtype=np.int64)
+    indptr = np.zeros(m + 1, dtype=np.int64)
+    longest = 0
+    for u in range(m):
+        a, b = assoc[u, 0], assoc[u, 1]
+        _row_windows(src_vals, src_a2s, src_start, vals, start, a, b, n_groups, epsilon, win0, win1)
+        c = 0
+        for a2 in range(n_i):
+            if a2 == a:
+                continue
+            if all_valid:
+                c += win1[a2] - win0[a2]
+            else:
+                for k in range(win0[a2], win1[a2]):
+                    c += lookup[a2, b2s[k]] >= 0
+        indptr[u + 1] = indptr[u] + c
+        longest = max(longest, c)
+    indices = np.empty(indptr[m], dtype=index.dtype)
+    data = np.empty(indptr[m], dtype=weights.dtype)
+    buf_x = np.empty(longest)
+    buf_w = np.empty(longest)
+    for u in range(m):
+        a, b = assoc[u, 0], assoc[u, 1]
+        _row_windows(src_vals, src_a2s, src_start, vals, start, a, b, n_groups, epsilon, win0, win1)
+        pos = indptr[u]
+        n = 0
+        for a2 in range(n_i):
+            if a2 == a:
+                continue
+            d = D_i[a, a2]
+            for k in range(win0[a2], win1[a2]):
+                v = lookup[a2, b2s[k]]
+                if v < 0:
+                    continue
+                indices[pos + n] = v
+                c = d - vals[k]
+                buf_x[n] = -c * c * inv_two_sigma2
+                n += 1
+        # the row's weights in one branch-free (vectorised) loop
+        _exp_nonpositive(buf_x, buf_w, n, squarings)
+        for t in range(n):
+            data[pos + t] = buf_w[t]
     return indptr, indices, data
 
 
@@ -260,8 +272,9 @@ def build_consistency_graph(
     lookup = np.full((n_i, n_j), -1, dtype=np.int32 if m < 2**31 else np.int64)
     lookup[assoc[:, 0], assoc[:, 1]] = np.arange(m)
     index = np.empty(0, dtype=np.uint16 if compact and m <= 2**16 else np.int32)
+    same_group_pairs = int(np.bincount(gi, minlength=n_groups) @ np.bincount(gj, minlength=n_groups))
     indptr, indices, data = _build(
-        D_i, D_j, gi, gj, lookup, m, float(epsilon), inv2s2, n_groups, np.empty(0, dtype=dtype),
-        index, _squarings(float(epsilon), inv2s2),
+        D_i, D_j, gi, gj, assoc, lookup, m == same_group_pairs, float(epsilon), inv2s2, n_groups,
+        np.empty(0, dtype=dtype), index, _squarings(float(epsilon), inv2s2),
     )
     return ConsistencyGraph(assoc, indptr, indices, data)

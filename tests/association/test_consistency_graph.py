@@ -98,3 +98,26 @@ def test_compact_storage_is_six_bytes_per_nonzero_and_equals_int32():
     W = g.weights
     assert g.indices.dtype == np.int32 and np.shares_memory(W.data, g.data)
     assert (W != ref.weights).nnz == 0 and (W != W.T).nnz == 0
+
+
+def test_row_order_is_source_landmark_then_target_distance():
+    """Row u = (a, b) lists, for a2 = 0, 1, ... (a2 != a), the associations (a2, b2) of b2 in
+    ascending D_j[b, b2] (ties: b2): the order the solver's sums were checked with."""
+    sc = make_scene_pair(5, 9, seed=7)
+    Di, Dj = pairwise_distances(sc.source), pairwise_distances(sc.target)
+    ti, tj = sc.source.types, sc.target.types
+    full = all_to_all(ti, tj)
+    assoc = full[np.random.default_rng(0).random(len(full)) < 0.7]  # gated-like subset
+    g = build_consistency_graph(Di, Dj, assoc, types_i=ti, types_j=tj)
+    vid = {(int(a), int(b)): u for u, (a, b) in enumerate(assoc)}
+    for u, (a, b) in enumerate(assoc.tolist()):
+        expected = []
+        for a2 in range(len(ti)):
+            if a2 == a:
+                continue
+            b2s = [b2 for b2 in range(len(tj)) if b2 != b and tj[b2] == ti[a2] and (a2, b2) in vid
+                   and abs(Di[a, a2] - Dj[b, b2]) < 0.2]
+            expected += [vid[(a2, b2)] for b2 in sorted(b2s, key=lambda b2: (Dj[b, b2], b2))]
+        row = g.indices[g.indptr[u]:g.indptr[u + 1]].tolist()
+        assert row == expected
+    assert g.n_edges > 100
