@@ -38,7 +38,7 @@ def right(T: np.ndarray, T_gt: np.ndarray) -> bool:
 
 
 def diagnose(src: dict, pairs: list[dict], suite: str, split: str) -> list[dict]:
-    open_v = dict(min_overlap=0.0, max_rival_ratio=1.0, min_landmark_overlap=0.0)
+    open_v = dict(min_overlap=0.0, max_rival_ratio=1.0, min_landmark_overlap=0.0, lines_only=None)
     matchers = {
         "cliques": GraffMatcher(GraffMatchConfig(landmark_types=["line"], verification=VerificationConfig(
             pair_hypotheses=0, **open_v))),

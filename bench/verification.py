@@ -161,6 +161,7 @@ def run_pairs(src: dict, pairs: list[dict], cfg: GraffMatchConfig) -> list[dict]
         row["message"] = r.message
         row["n_hyp"] = len(r.hypotheses)
         row["n_assoc"] = len(r.associations)
+        row["slide"] = float(r.info.get("slide_ratio", 0.0))
         row["conflict"] = float(max(r.info.get("free_space_conflict", (0.0, 0.0))))
         row["T"] = None if r.T_target_source is None else np.asarray(r.T_target_source).tolist()
         row["correct"] = False
@@ -179,11 +180,14 @@ def run_pairs(src: dict, pairs: list[dict], cfg: GraffMatchConfig) -> list[dict]
     return rows
 
 
-def decide(rows: list[dict], min_overlap: float, max_ratio: float, max_conflict: float = 1.0) -> np.ndarray:
+def decide(rows: list[dict], min_overlap: float, max_ratio: float, max_conflict: float = 1.0,
+           max_slide: float | None = None) -> np.ndarray:
     s = np.array([r["score"] for r in rows])
     q = np.array([r["ratio"] for r in rows])
     c = np.array([r.get("conflict", 0.0) for r in rows])
     st = np.array([r["structural"] for r in rows])
+    if max_slide is not None:
+        st = st & (np.array([r.get("slide", 0.0) for r in rows]) <= max_slide)
     return st & (s >= min_overlap) & (q <= max_ratio) & (c <= max_conflict)
 
 
@@ -325,7 +329,8 @@ def lines_only(src: dict, pairs: list[dict], variant: tuple) -> tuple[dict, list
     negative), reported on the test split."""
     sel = [p for p in pairs if p["ds"].startswith("sim") and p["ds2"].startswith("sim")]
     cfg = GraffMatchConfig(landmark_types=["line"], verification=VerificationConfig(
-        min_overlap=0.0, max_rival_ratio=1.0, max_conflict=1.0, min_landmark_overlap=0.0, lines_only=None))
+        min_overlap=0.0, max_rival_ratio=1.0, max_conflict=1.0, min_landmark_overlap=0.0, max_slide_ratio=1e9,
+        lines_only=None))
     rows = run_pairs(src, sel, cfg)
     for r, c in zip(rows, free_space_conflicts(src, rows, variant), strict=True):
         r["conflict"] = float(c)
@@ -333,17 +338,25 @@ def lines_only(src: dict, pairs: list[dict], variant: tuple) -> tuple[dict, list
 
 
 def lines_only_report(rows: list[dict]) -> dict:
-    """Thresholds on the calibration rows, metrics per suite on both splits."""
+    """Thresholds on the calibration rows (the slide ratio too: for each of its values the
+    other three are chosen; ties: the stricter slide ratio), metrics per suite on both splits."""
     cal = [r for r in rows if r["split"] == "cal"]
     groups = np.array([r["ds"] if r["ds"] == r["ds2"] else "cross" for r in cal])
-    mo, mr, mc, _ = choose_thresholds(cal, groups=groups, max_neg_fpr=0.0, loose_conflict=False)
-    out: dict = {"thresholds": {"min_overlap": mo, "max_rival_ratio": mr, "max_conflict": mc},
-                 "calibration": {}, "test": {}}
+    best = None
+    for ms in [*np.round(np.arange(0.6, 1.001, 0.05), 3), None]:
+        sub = [dict(r, structural=bool(r["structural"] and (ms is None or r.get("slide", 0.0) <= ms))) for r in cal]
+        mo, mr, mc, m = choose_thresholds(sub, groups=groups, max_neg_fpr=0.0, loose_conflict=False)
+        key = (m.get("recall", 0.0), -(ms or 9.0))
+        if best is None or key > best[0]:
+            best = (key, mo, mr, mc, None if ms is None else float(ms))
+    _, mo, mr, mc, ms = best  # type: ignore[misc]
+    out: dict = {"thresholds": {"min_overlap": mo, "max_rival_ratio": mr, "max_conflict": mc,
+                                "max_slide_ratio": ms}, "calibration": {}, "test": {}}
     print(f"\nlines only: chosen on the calibration split ({len(cal)} pairs): min_overlap={mo}, "
-          f"max_rival_ratio={mr}, max_conflict={mc}")
+          f"max_rival_ratio={mr}, max_conflict={mc}, max_slide_ratio={ms}")
     for split in ("cal", "test"):
         sub = [r for r in rows if r["split"] == split]
-        v = decide(sub, mo, mr, mc)
+        v = decide(sub, mo, mr, mc, ms)
         label = "calibration" if split == "cal" else "test"
         print(f"{'lines only (' + label + ')':<30}{'pairs':>6}{'pos':>5}{'neg':>5}{'valid':>6}{'prec':>7}"
               f"{'recall':>7}{'oracle':>7}{'FP neg':>8}")

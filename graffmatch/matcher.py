@@ -267,6 +267,8 @@ def _verified_result(source, target, graph, sol, cfg: GraffMatchConfig, timings,
                           score_parts=best.score_parts, clipper_selected=len(sol.selected))
     if "free_space_conflict" in best.info:
         common["info"]["free_space_conflict"] = best.info["free_space_conflict"]
+    if "slide_ratio" in best.info:
+        common["info"]["slide_ratio"] = best.info["slide_ratio"]
     valid = not problems
     return MatchResult(
         best.T_target_source, kappa=best.kappa, degenerate=best.degenerate, valid=valid,

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
-#: lines-only (min_overlap, max_rival_ratio, max_conflict), from bench/verification.py
-LINES_ONLY = (0.3125, 0.675, 0.2)
+#: lines-only (min_overlap, max_rival_ratio, max_conflict, max_slide_ratio), from bench/verification.py
+LINES_ONLY = (0.2375, 0.675, 0.26, 0.8)
 
 
 class DecisionThresholds(BaseModel):
@@ -17,6 +17,9 @@ class DecisionThresholds(BaseModel):
     min_overlap: float = Field(ge=0, le=1, description="the best hypothesis must explain at least this share")
     max_rival_ratio: float = Field(gt=0, le=1, description="ambiguous above this rival / best score ratio")
     max_conflict: float = Field(ge=0, le=1, description="invalid above this free-space conflict")
+    max_slide_ratio: float | None = Field(
+        None, gt=0, description="invalid above this slide ratio (see VerificationConfig.max_slide_ratio)"
+    )
 
 
 class VerificationConfig(BaseModel):
@@ -113,6 +116,13 @@ class VerificationConfig(BaseModel):
         description="invalid when more than this share of either scan's points lies in the other's observed "
         "free space (chosen on the calibration split of bench/verification.py)",
     )
+    max_slide_ratio: float | None = Field(
+        None, gt=0,
+        description="invalid when the evidence points, aligned from starts slide_m away in 16 horizontal "
+        "directions, settle at least rival_m from the winner with more than this fraction of its score: "
+        "nothing pins the translation (None: not checked; the lines-only decision sets it)",
+    )
+    slide_m: float = Field(1.5, gt=0, description="... the starts' distance [m]")
     min_landmark_overlap: float = Field(
         0.2, ge=0, le=1, description="without support points: graded share of landmarks with a counterpart"
     )
@@ -132,7 +142,7 @@ class VerificationConfig(BaseModel):
     )
     lines_only: DecisionThresholds | None = Field(
         default_factory=lambda: DecisionThresholds(min_overlap=LINES_ONLY[0], max_rival_ratio=LINES_ONLY[1],
-                                                   max_conflict=LINES_ONLY[2]),
+                                                   max_conflict=LINES_ONLY[2], max_slide_ratio=LINES_ONLY[3]),
         description="replace min_overlap / max_rival_ratio / max_conflict when the matcher matches lines only "
         "(landmark_types=['line']): poles alone leave more aliased answers that explain the points "
         "(chosen on the lines-only calibration split of bench/verification.py; None: the same "

@@ -243,6 +243,34 @@ def _check_free_space(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -
         )
 
 
+def _check_slide(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -> None:
+    """Invalid when the evidence does not pin the winner's translation: aligned from starts
+    ``slide_m`` away in 16 horizontal directions, the points settle at least ``rival_m`` away
+    with more than ``max_slide_ratio`` of the winner's score. Poles alone leave streets and
+    tree-lined roads where a slide of a metre or two (or a different road) explains the points
+    about as well (lines only: sim-downtown near misses 1-2 m off, sim-openroad aliases,
+    bench/verification.py)."""
+    best = verdict.best
+    T0 = best.T_target_source
+    ang = np.radians(np.arange(0.0, 360.0, 22.5))
+    starts = np.repeat(T0[None], len(ang), axis=0)
+    starts[:, 0, 3] += cfg.slide_m * np.cos(ang)
+    starts[:, 1, 3] += cfg.slide_m * np.sin(ang)
+    aligned = np.stack([align_on_evidence(ev.source, ev.target, T) for T in starts])  # type: ignore[arg-type]
+    far = np.linalg.norm(aligned[:, :3, 3] - T0[:3, 3], axis=1) >= cfg.rival_m
+    ratio = 0.0
+    if far.any() and best.score > 0:
+        parts = point_overlaps(ev.source, ev.target, np.ascontiguousarray(aligned[far]), cfg.inlier_m)  # type: ignore[arg-type]
+        ratio = float(parts.mean(axis=1).max() / best.score)
+    best.info["slide_ratio"] = ratio
+    if ratio > cfg.max_slide_ratio:  # type: ignore[operator]
+        verdict.valid = False
+        verdict.problems.append(
+            f"translation not pinned: the points aligned from {cfg.slide_m:.1f} m away explain "
+            f"{ratio:.2f} of the best (> {cfg.max_slide_ratio:.2f})"
+        )
+
+
 def score_hypotheses(
     hyps: list[Hypothesis], source: LandmarkSet, target: LandmarkSet, ev: Evidence,
     cfg: VerificationConfig, exact: bool,
@@ -339,4 +367,6 @@ def verify_graph(
         _check_translation(verdict, source, target, associations, cfg)
     if ev.has_points and cfg.free_space and verdict.best is not None:
         _check_free_space(verdict, ev, cfg)
+    if ev.has_points and cfg.max_slide_ratio is not None and verdict.best is not None:
+        _check_slide(verdict, ev, cfg)
     return verdict, merged
