@@ -78,6 +78,9 @@ def loops(
     executor: Annotated[LoopExecutor, typer.Option(help="Where extraction and verification run.")] = LoopExecutor.local,
     address: Annotated[str | None, typer.Option(help="Cluster address (dask/ray).")] = None,
     workers: Annotated[int | None, typer.Option(min=1, help="Local worker processes.")] = None,
+    deskew: Annotated[
+        bool, typer.Option(help="De-skew raw scans with the odometry's motion first (KITTI ships them de-skewed).")
+    ] = False,
 ) -> None:
     """Find every loop closure of a drive: landmarks per scan, retrieval, verified matching."""
     from graffmatch.loops.detector import LoopDetectorConfig
@@ -99,8 +102,12 @@ def loops(
     cfg = LoopDetectorConfig.model_validate(cfg.model_dump())
     out_dir = output or run_dir(STATE.runs_dir, "loops")
     odo = None
-    if optimize or retriever == Retriever.radius:
+    if optimize or deskew or retriever == Retriever.radius:
         odo = odometry_for(ds, odometry, OdometryDriftConfig(yaw_bias_deg_per_100m=drift_yaw, seed=drift_seed))
+    if deskew:
+        from graffmatch.datasets.deskewed import Deskewed
+
+        ds = Deskewed(ds, odo)
     with make_progress() as progress:
         summary = run_loops(
             ds, out_dir, cfg, executor=executor.value, workers=workers, address=address,

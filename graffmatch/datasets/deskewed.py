@@ -13,6 +13,7 @@ odometry: its scans ship de-skewed.
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -38,8 +39,9 @@ class Deskewed:
             )
         self.dataset = dataset
         self.motion_poses = poses
-        #: a different name, so caches keyed by it never mix raw and de-skewed landmarks
+        #: a different name and cache tag, so caches never mix raw and de-skewed landmarks
         self.name = f"{getattr(dataset, 'name', 'dataset')}+deskew"
+        self.cache_tag = "deskew:" + hashlib.sha1(np.ascontiguousarray(poses).tobytes()).hexdigest()[:16]
 
     def __len__(self) -> int:
         return len(self.dataset)

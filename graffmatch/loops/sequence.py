@@ -72,6 +72,9 @@ def _front_end_json(config: LoopDetectorConfig) -> str:
 
 def _scan_key(dataset: Dataset, i: int, config: LoopDetectorConfig) -> str:
     parts = [_stamp(dataset.scan_path(i)), _stamp(dataset.label_path(i)) if config.use_labels else "nolabels", _front_end_json(config)]
+    tag = getattr(dataset, "cache_tag", None)  # e.g. de-skewed points: other landmarks, same files
+    if tag:
+        parts.append(str(tag))
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:20]
 
 

@@ -223,3 +223,18 @@ def test_cluster_executors_extract_on_a_local_cluster(drives, tmp_path, executor
     for q in range(6):
         assert [(c["match"], c["confidence"]) for c in recs[q]["candidates"]] == \
             [(c["match"], c["confidence"]) for c in serial[q]["candidates"]]
+
+
+def test_deskewed_scans_have_their_own_cache_keys(drives):
+    """De-skewed scans give other landmarks from the same files: a run on them never reuses a
+    raw run's tables (nor one de-skewed with another odometry), and the key is reproducible."""
+    from graffmatch.datasets.deskewed import Deskewed
+    from graffmatch.loops.posegraph import drifted_odometry
+    from graffmatch.loops.sequence import _scan_key
+
+    ds, _out, _ = drives["rev"]
+    cfg = _config()
+    d = Deskewed(ds)
+    assert _scan_key(d, 3, cfg) != _scan_key(ds, 3, cfg)
+    assert _scan_key(Deskewed(ds), 3, cfg) == _scan_key(d, 3, cfg)
+    assert _scan_key(Deskewed(ds, drifted_odometry(ds.poses)), 3, cfg) != _scan_key(d, 3, cfg)
