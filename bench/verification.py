@@ -7,7 +7,10 @@ Data (all from one command, cached under --out):
 * ``kitti00_first6`` (real): every pair of the six scans (test only).
 * the simulated drives of ``graffmatch benchmark``'s suites (sim-downtown, sim-suburban,
   sim-openroad: the realistic simulator, HDL-64): pairs 3-16 m apart (positives), split by the
-  first / second half of each drive.
+  first / second half of each drive. Their raw scans are motion-distorted (up to 1 m per sweep
+  at 10 m/s, 10 deg in a U-turn), so they are de-skewed with a drifting odometry
+  (``datasets.Deskewed``, ``loops.posegraph.drifted_odometry``) as a user's drive is;
+  ``--raw-drives`` also reports the same test pairs on the raw scans (not calibrated on).
 * negatives, split by pair parity: places > 60 m apart on one recording, and cross-dataset
   pairs: courtyard x KITTI, simulated x real, simulated style x style (``--cross-per`` of each,
   half of them test). A far pair on one recording can still share a view (an 80 m lidar on an
@@ -23,7 +26,7 @@ from each pair's transform): the largest recall on the calibration split with pr
 >= 99.5 % and at most 0.5 % valid-and-wrong negatives; the confidence is a logistic fit on the
 calibration split. Prints the tables and writes JSON (``--json``).
 
-    python bench/verification.py --out /tmp/gm-verify --json bench/results/verification.json
+    python bench/verification.py --out /tmp/gm-verify --raw-drives --json bench/results/verification.json
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize
 
+from graffmatch.datasets.deskewed import Deskewed
 from graffmatch.datasets.folder import KittiFolder
 from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation.suites import SIM_EXTRACTORS, shared_data_root, suite_config
@@ -70,7 +74,7 @@ def extract_all(ds, cfg: LandmarkExtractorConfig, cache: Path, name: str) -> lis
     return out
 
 
-def load_sources(out: Path, sims: bool) -> dict[str, dict]:
+def load_sources(out: Path, sims: bool, raw_drives: bool = False) -> dict[str, dict]:
     root = shared_data_root()
     src: dict[str, dict] = {}
     court = KittiFolder(root / "balm_courtyard")
@@ -83,19 +87,33 @@ def load_sources(out: Path, sims: bool) -> dict[str, dict]:
                     "poses": kitti.poses}
     if sims:
         from graffmatch.evaluation.suites import SUITES
+        from graffmatch.loops.posegraph import OdometryDriftConfig, drifted_odometry
 
-        for name in ("sim-downtown", "sim-suburban", "sim-openroad"):  # the report's drives
+        for k, name in enumerate(("sim-downtown", "sim-suburban", "sim-openroad")):  # the report's drives
             ds = SUITES[name].make_dataset(out / f"suite-{name}", False, None)
             cfg = LandmarkExtractorConfig.model_validate(SIM_EXTRACTORS.get(name, {}))
-            src[name] = {"lms": extract_all(ds, cfg, out / "cache", name), "poses": ds.poses}
+            # raw (motion-distorted) scans, de-skewed with a drifting odometry as a user's drive is
+            odometry = drifted_odometry(ds.poses, OdometryDriftConfig(seed=k))
+            src[name] = {"lms": extract_all(Deskewed(ds, odometry), cfg, out / "cache", f"{name}-deskew"),
+                         "poses": ds.poses}
+            if raw_drives:
+                src[f"{name} raw"] = {"lms": extract_all(ds, cfg, out / "cache", name), "poses": ds.poses}
     return src
+
+
+def raw_drive_pairs(pairs: list[dict]) -> list[dict]:
+    """The test pairs of each de-skewed simulated drive again, on its raw scans."""
+    return [dict(p, ds=f"{p['ds']} raw", ds2=f"{p['ds2']} raw") for p in pairs
+            if p["split"] == "test" and p["ds"] == p["ds2"] and p["ds"].startswith("sim-")]
 
 
 def make_pairs(src: dict[str, dict], max_per: int, cross_per: int = 180, seed: int = 0) -> list[dict]:
     """Positive and negative pairs with their split ('cal' or 'test'): up to ``max_per``
     positives per dataset and split, ``cross_per`` negatives per pair of datasets and per
-    dataset (places > 60 m apart), alternately calibration and test."""
+    dataset (places > 60 m apart), alternately calibration and test. Raw drives (``--raw-drives``)
+    get none here: :func:`raw_drive_pairs` repeats their de-skewed twin's test pairs."""
     rng = np.random.default_rng(seed)
+    src = {k: v for k, v in src.items() if not k.endswith(" raw")}
     pairs: list[dict] = []
 
     def take(lst: list, k: int) -> list:
@@ -377,13 +395,15 @@ def main() -> None:
     ap.add_argument("--max-per", type=int, default=120, help="positives per dataset and split")
     ap.add_argument("--cross-per", type=int, default=180,
                     help="negatives per pair of datasets (and per dataset, > 60 m apart), half of them test")
+    ap.add_argument("--raw-drives", action="store_true",
+                    help="also report the simulated drives' test pairs on their raw (not de-skewed) scans")
     ap.add_argument("--json", default=None)
     ap.add_argument("--lines-only", action="store_true",
                     help="only the lines-only pass (rows to OUT/lines_only_rows.json; --json is not written)")
     a = ap.parse_args()
     out = Path(a.out)
     t0 = time.perf_counter()
-    src = load_sources(out, not a.no_sim)
+    src = load_sources(out, not a.no_sim, a.raw_drives)
     print(f"landmarks ready in {time.perf_counter() - t0:.0f} s: "
           + ", ".join(f"{k} {len(v['lms'])}" for k, v in src.items()), flush=True)
     pairs = make_pairs(src, a.max_per, a.cross_per)
@@ -445,6 +465,18 @@ def main() -> None:
         m = report["test"][label]
         print(f"{'ALL (test), ' + label:<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
               f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
+    if a.raw_drives:  # the same test pairs without de-skewing, at the thresholds chosen above
+        raw = run_pairs(src, raw_drive_pairs(pairs), open_cfg)
+        for r, c in zip(raw, free_space_conflicts(src, raw, chosen["variant"]), strict=True):
+            r["conflict"] = float(c)
+        vr = decide(raw, mo, mr, mc)
+        report["raw_drives_test"] = {}
+        for name in sorted({r["ds"] for r in raw}):
+            idx = [k for k, r in enumerate(raw) if r["ds"] == name]
+            m = report["raw_drives_test"][name] = metrics([raw[k] for k in idx], vr[idx])
+            print(f"{name:<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
+                  f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
+        rows = rows + raw
     if a.json:  # the full matcher's rows first: the lines-only pass below takes a while
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
         Path(a.json).write_text(json.dumps({**report, "rows": rows}, indent=1, default=float))

@@ -93,11 +93,11 @@ class VerificationConfig(BaseModel):
     landmark_m: float = Field(0.4, gt=0, description="landmark-level evidence: offset tolerance [m]")
     # decision
     min_overlap: float = Field(
-        0.225, ge=0, le=1,
+        0.2, ge=0, le=1,
         description="the best hypothesis must explain at least this share (chosen on the calibration split)",
     )
     max_rival_ratio: float = Field(
-        0.8, gt=0, le=1,
+        0.825, gt=0, le=1,
         description="ambiguous when a distinct rival scores more than this fraction of the best (calibration split)",
     )
     free_space: bool = Field(
@@ -110,9 +110,9 @@ class VerificationConfig(BaseModel):
     free_space_el_deg: float = Field(1.0, gt=0, le=30, description="... elevation cell [deg]")
     free_space_neighbours: int = Field(1, ge=0, le=5, description="... cells around each cell that shadow it")
     free_space_margin: float = Field(1.0, ge=0, description="a point conflicts this far in front of the return [m] ...")
-    free_space_margin_rel: float = Field(0.05, ge=0, description="... or this fraction of the return's range")
+    free_space_margin_rel: float = Field(0.1, ge=0, description="... or this fraction of the return's range")
     max_conflict: float = Field(
-        0.11, ge=0, le=1,
+        0.08, ge=0, le=1,
         description="invalid when more than this share of either scan's points lies in the other's observed "
         "free space (chosen on the calibration split of bench/verification.py)",
     )
@@ -136,7 +136,7 @@ class VerificationConfig(BaseModel):
         "on fuzz seed 1 of bench/fuzz_validity.py, reported on seed 0)",
     )
     confidence_coef: tuple[float, float, float, float] = Field(
-        (-6.18, 28.2, 2.908, -17.339),
+        (-5.927, 26.738, 2.771, -23.417),
         description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio) + c3 * conflict), "
         "fitted on the calibration split of bench/verification.py (conflict 0 without support points)",
     )
