@@ -82,6 +82,82 @@ def _grow_cliques(indptr, indices, data, starts, allowed):
     return out, offsets
 
 
+@nb.njit(cache=True)
+def _grow_cliques_dense(indptr, indices, data, starts, allowed):
+    """:func:`_grow_cliques` with the graph also held as dense rows (built once): each step
+    looks its candidates up in the chosen vertex's row instead of marking and unmarking that
+    row's neighbours. Candidates start in CSR order and keep their order, scores add the same
+    weights in the same order (a repeated entry: the last one, as there), so the cliques are the
+    same. For graphs small enough for dense rows, grown from many starts (every vertex)."""
+    m = indptr.shape[0] - 1
+    adj = np.zeros((m, m), dtype=np.bool_)
+    wd = np.zeros((m, m))
+    for i in range(m):
+        for t in range(indptr[i], indptr[i + 1]):
+            adj[i, indices[t]] = True
+            wd[i, indices[t]] = data[t]
+    score = np.zeros(m)
+    cand = np.empty(m + indptr[m], dtype=np.int64)  # (a repeated entry is a candidate twice)
+    clique = np.empty(m + 1, dtype=np.int64)
+    out = np.empty(len(starts) * 8, dtype=np.int64)
+    offsets = np.zeros(len(starts) + 1, dtype=np.int64)
+    n_out = 0
+    n_cl = 0
+    for s in starts:
+        if not allowed[s]:
+            continue
+        n_cand = 0
+        for t in range(indptr[s], indptr[s + 1]):
+            j = indices[t]
+            if allowed[j]:
+                score[j] = data[t]
+                cand[n_cand] = j
+                n_cand += 1
+        clique[0] = s
+        size = 1
+        while n_cand > 0:
+            bi = -1
+            bs = -1.0
+            for c in range(n_cand):
+                v = cand[c]
+                if score[v] > bs:
+                    bs = score[v]
+                    bi = v
+            clique[size] = bi
+            size += 1
+            new_n = 0
+            for c in range(n_cand):
+                v = cand[c]
+                if v != bi and adj[bi, v]:
+                    score[v] += wd[bi, v]
+                    cand[new_n] = v
+                    new_n += 1
+                else:
+                    score[v] = 0.0
+            n_cand = new_n
+        for c in range(n_cand):
+            score[cand[c]] = 0.0
+        if n_out + size > len(out):
+            grown = np.empty(2 * (n_out + size), dtype=np.int64)
+            grown[:n_out] = out[:n_out]
+            out = grown
+        out[n_out:n_out + size] = clique[:size]
+        n_out += size
+        n_cl += 1
+        offsets[n_cl] = n_out
+    return out[:n_out], offsets[:n_cl + 1]
+
+
+@nb.njit(cache=True)
+def _sort_segments(flat, off):
+    """Sort each segment ``flat[off[i]:off[i + 1]]`` in place."""
+    for i in range(len(off) - 1):
+        flat[off[i]:off[i + 1]] = np.sort(flat[off[i]:off[i + 1]])
+
+
+_DENSE_GREEDY_MAX = 512  # graphs up to this many associations: dense rows (2 MB of weights at most)
+
+
 def greedy_cliques(
     W: sp.csr_matrix, starts: NDArray[np.int64], allowed: NDArray[np.bool_] | None = None
 ) -> list[NDArray[np.int64]]:
@@ -92,15 +168,21 @@ def greedy_cliques(
         return []
     allowed = np.ones(m, dtype=np.bool_) if allowed is None else np.asarray(allowed, dtype=np.bool_)
     indptr, indices, data = _csr64(W)
-    flat, off = _grow_cliques(indptr, indices, data, np.asarray(starts, dtype=np.int64), allowed)
+    starts = np.asarray(starts, dtype=np.int64)
+    grow = _grow_cliques_dense if m <= _DENSE_GREEDY_MAX and len(starts) >= 32 else _grow_cliques
+    flat, off = grow(indptr, indices, data, starts, allowed)
+    n = len(off) - 1
+    _sort_segments(flat, off)  # each clique sorted, in one call
+    buf = flat.tobytes()
+    b = (off * flat.itemsize).tolist()
+    lo = off.tolist()
     seen: set[bytes] = set()
     out = []
-    for i in range(len(off) - 1):
-        c = np.sort(flat[off[i] : off[i + 1]])
-        key = c.tobytes()
+    for i in range(n):
+        key = buf[b[i] : b[i + 1]]
         if key not in seen:
             seen.add(key)
-            out.append(c)
+            out.append(flat[lo[i] : lo[i + 1]])
     return out
 
 

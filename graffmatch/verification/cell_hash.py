@@ -297,6 +297,7 @@ def _moved_hits(P: NDArray[np.float64], Ts: NDArray[np.float64], inverse: bool, 
     t = np.empty(3)
     q = np.empty((n, 3))
     cand = np.empty(n, np.int64)
+    found = np.empty(n, np.int64)
     for hh in range(H):
         _moved_frame(Ts, hh, inverse, R, t)
         r00, r01, r02, t0 = R[0, 0], R[0, 1], R[0, 2], t[0]
@@ -305,10 +306,14 @@ def _moved_hits(P: NDArray[np.float64], Ts: NDArray[np.float64], inverse: bool, 
         # moved points next to the cloud first, the search in a loop of its own
         m = _moved_near(P, r00, r01, r02, t0, r10, r11, r12, t1, r20, r21, r22, t2, near, near_lo, near_dims,
                         near_inv, q, cand)
+        # the search alone in its loop, results to a local array (counting inside the search
+        # loop made LLVM keep less of the grid in registers: ~3x slower)
+        for a in range(m):
+            found[a] = _nearest_in_grid(q[a, 0], q[a, 1], q[a, 2], spts, h, inv_h, origin, dims, dense, tk, tv,
+                                        starts, r2, False)
         cnt = 0
         for a in range(m):
-            qx, qy, qz = q[a, 0], q[a, 1], q[a, 2]
-            if _nearest_in_grid(qx, qy, qz, spts, h, inv_h, origin, dims, dense, tk, tv, starts, r2, False) >= 0:
+            if found[a] >= 0:
                 cnt += 1
         out[hh] = cnt
     return out

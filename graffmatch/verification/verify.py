@@ -161,9 +161,15 @@ def _local_search(lead: Hypothesis, ev: Evidence, cfg: VerificationConfig) -> No
     Ts = local_perturbations(T0, centre, cfg.local_search_step_m, cfg.local_search_m, cfg.local_search_deg)
     occ = occupancy_overlap(src, tgt, Ts, cfg.inlier_m).mean(axis=1)  # type: ignore[arg-type]
     starts = [T0, *Ts[np.argsort(-occ, kind="stable")[: cfg.local_search_top]]]
-    aligned = np.stack([align_on_evidence(src, tgt, T_start, cfg.local_search_distances)  # type: ignore[arg-type]
-                        for T_start in starts])
-    all_parts = point_overlaps(src, tgt, aligned, cfg.inlier_m)  # type: ignore[arg-type]
+    # the unshifted, unturned start is T0 bit for bit and usually among the best by occupancy:
+    # a start equal to an earlier one takes that one's alignment (the same steps, the same T)
+    first = [next(j for j in range(i + 1) if np.array_equal(starts[j], starts[i])) for i in range(len(starts))]
+    uniq = sorted(set(first))
+    done = {i: align_on_evidence(src, tgt, starts[i], cfg.local_search_distances)  # type: ignore[arg-type]
+            for i in uniq}
+    parts_u = point_overlaps(src, tgt, np.stack([done[i] for i in uniq]), cfg.inlier_m)  # type: ignore[arg-type]
+    aligned = np.stack([done[f] for f in first])
+    all_parts = parts_u[[uniq.index(f) for f in first]]
     best_score, best_T, best_parts = lead.score + cfg.local_search_gain, None, None
     for T, parts in zip(aligned, all_parts, strict=True):
         score = 0.5 * (parts[0] + parts[1])
