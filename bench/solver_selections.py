@@ -1,6 +1,7 @@
 """The solver's selections under solver-config variants, against the true associations.
 
-    python bench/solver_selections.py [--seeds 16] [--json bench/results/solver_selections.json]
+    python bench/solver_selections.py [--seeds 16] [--workloads W1,W2] [--variants 0,1]
+                                      [--no-verification] [--json bench/results/solver_selections.json]
 
 For W1/W2 street scenes (bench_matcher.py's workloads) and each variant of the matcher's solver
 config: the associations CLIPPER (+ greedy cliques) selects, their precision and recall against
@@ -23,23 +24,30 @@ from _common import machine, print_table, write_json
 import graffmatch.matcher as gm
 from graffmatch.datasets.landmark_scene import make_scene_pair
 from graffmatch.geometry.transforms import transform_errors
+from graffmatch.verification.config import VerificationConfig
 
 VARIANTS = {
-    "backtracking tol 1e-3/1e-4 (before)": {"line_search": "backtracking", "tol_u": 1e-3, "tol_F": 1e-4},
-    "linear backtracking tol 1e-3/1e-4 (default)": {"line_search": "backtracking_linear", "tol_u": 1e-3,
-                                                    "tol_F": 1e-4},
+    "linear backtracking tol 1e-3/1e-4 (session 5)": {"line_search": "backtracking_linear", "tol_u": 1e-3,
+                                                      "tol_F": 1e-4, "step_cap": 0.0},
+    "linear backtracking, step cap 8 / F (default)": {"line_search": "backtracking_linear", "tol_u": 1e-3,
+                                                      "tol_F": 1e-4, "step_cap": 8.0},
+    "backtracking tol 1e-3/1e-4": {"line_search": "backtracking", "tol_u": 1e-3, "tol_F": 1e-4, "step_cap": 0.0},
     "exact tol 1e-3/1e-4": {"line_search": "exact", "tol_u": 1e-3, "tol_F": 1e-4},
     "exact tol 1e-2/1e-2": {"line_search": "exact", "tol_u": 1e-2, "tol_F": 1e-2},
 }
-WORKLOADS = {"W1": (15, 30), "W2": (30, 60)}
+WORKLOADS = {"W1": (15, 30), "W2": (30, 60), "W3": (60, 120)}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seeds", type=int, default=16)
     ap.add_argument("--workloads", default="W1,W2")
+    ap.add_argument("--variants", default=None, help="comma-separated indices into VARIANTS (default: all)")
+    ap.add_argument("--no-verification", action="store_true", help="match() without verification (W3: seconds)")
     ap.add_argument("--json", default=None)
     args = ap.parse_args()
+    variants = VARIANTS if args.variants is None else {
+        k: v for i, (k, v) in enumerate(VARIANTS.items()) if str(i) in args.variants.split(",")}
     captured: list = []
     solve = gm.solve_clipper
 
@@ -56,8 +64,9 @@ def main() -> None:
             sc = make_scene_pair(*WORKLOADS[wl], seed=seed)
             truth = set(map(tuple, sc.true_matches.tolist()))
             first = None
-            for label, upd in VARIANTS.items():
-                cfg = gm.GraffMatchConfig(solver=gm.GraffMatchConfig().solver.model_copy(update=upd))
+            for label, upd in variants.items():
+                cfg = gm.GraffMatchConfig(solver=gm.GraffMatchConfig().solver.model_copy(update=upd),
+                                          verification=VerificationConfig(enabled=not args.no_verification))
                 graph: list = []
                 gm.build_consistency_graph = lambda *a, graph=graph, **k: graph.append(build(*a, **k)) or graph[-1]
                 captured.clear()
@@ -73,7 +82,7 @@ def main() -> None:
                                  "recall": tp / len(truth), "same_as_first": sel == first,
                                  "valid": bool(res.valid), "rot_err_deg": float(rot), "trans_err_m": float(trans)})
     for wl in args.workloads.split(","):
-        for label in VARIANTS:
+        for label in variants:
             cs = [c for c in per_case if c["workload"] == wl and c["variant"] == label]
             rows.append({"workload": wl, "variant": label, "cases": len(cs),
                          "matvecs_mean": round(float(np.mean([c["matvecs"] for c in cs])), 1),
@@ -88,7 +97,8 @@ def main() -> None:
     for c in diff:
         print("differs:", c["workload"], "seed", c["seed"], c["variant"],
               f"precision {c['precision']:.3f} recall {c['recall']:.3f}")
-    write_json(args.json, {"benchmark": "solver_selections", "machine": machine(), "rows": rows, "cases": per_case})
+    write_json(args.json, {"benchmark": "solver_selections", "machine": machine(),
+                            "verification": not args.no_verification, "rows": rows, "cases": per_case})
 
 
 if __name__ == "__main__":
