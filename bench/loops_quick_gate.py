@@ -25,7 +25,7 @@ from _common import machine, write_json
 COURTYARD = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "balm_courtyard"
 GATES = [  # (min fraction, translation gate [m] or None, min inliers for it, early stop)
     (0.0, None, 0, False), (0.4, None, 0, False), (0.4, None, 0, True), (0.4, 7.0, 6, True),
-    (0.5, 7.0, 6, True),
+    (0.5, 7.0, 6, True), (0.4, 7.0, 5, True), (0.4, 7.0, 4, True), (0.4, 6.0, 5, True),
 ]
 
 

@@ -75,6 +75,9 @@ def loops(
     ] = "drift",
     drift_yaw: Annotated[float, typer.Option(help="Simulated drift: heading bias (deg per 100 m).")] = 3.0,
     drift_seed: Annotated[int, typer.Option(help="Simulated drift seed.")] = 0,
+    odometry_bias: Annotated[
+        bool, typer.Option(help="--optimize: estimate the odometry's heading-rate bias from the loops.")
+    ] = True,
     executor: Annotated[LoopExecutor, typer.Option(help="Where extraction and verification run.")] = LoopExecutor.local,
     address: Annotated[str | None, typer.Option(help="Cluster address (dask/ray).")] = None,
     workers: Annotated[int | None, typer.Option(min=1, help="Local worker processes.")] = None,
@@ -84,7 +87,7 @@ def loops(
 ) -> None:
     """Find every loop closure of a drive: landmarks per scan, retrieval, verified matching."""
     from graffmatch.loops.detector import LoopDetectorConfig
-    from graffmatch.loops.posegraph import OdometryDriftConfig, odometry_for
+    from graffmatch.loops.posegraph import OdometryDriftConfig, PoseGraphConfig, odometry_for
     from graffmatch.loops.sequence import optimize_run, run_loops
 
     ds = _open(sequence, kind)
@@ -121,7 +124,10 @@ def loops(
     if optimize and odo is not None:
         import numpy as np
 
-        pg = optimize_run(out_dir, odo, np.asarray(ds.timestamps), reference=None if odometry == "gt" else np.asarray(ds.poses))
+        pg = optimize_run(out_dir, odo, np.asarray(ds.timestamps), reference=None if odometry == "gt" else np.asarray(ds.poses),
+                          config=PoseGraphConfig(estimate_odometry_bias=odometry_bias))
+        if "odometry_heading_bias_deg_per_100m" in pg:
+            out.print(f"estimated odometry heading bias: {pg['odometry_heading_bias_deg_per_100m']:+.2f} deg / 100 m")
         if "before" in pg:
             out.print(
                 f"pose graph: ATE {pg['before']['ate_rmse_m']:.2f} m -> {pg['after']['ate_rmse_m']:.2f} m, "

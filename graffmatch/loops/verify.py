@@ -113,16 +113,20 @@ def landmark_agreement(
     """(agreeing source landmarks, their fraction of min(n_source, n_target)) after T."""
     if len(source) == 0 or len(target) == 0:
         return 0, 0.0
-    s = source.transform(T_target_source)
-    ds, dt = s.directions, target.directions
+    # only anchors and directions move (R d is the moved line direction / plane normal): no
+    # transformed LandmarkSet (its bases, attributes and checks) is needed for the gates
+    T = np.asarray(T_target_source, float)
+    R, t = T[:3, :3], T[:3, 3]
+    anchors_s = source.anchors @ R.T + t
+    ds, dt = source.directions @ R.T, target.directions
     cos_gate = np.cos(np.radians(config.agree_deg))
     agree = 0
     for kind in (LandmarkType.LINE, LandmarkType.PLANE, LandmarkType.POINT):
-        i = np.flatnonzero(s.types == kind)
+        i = np.flatnonzero(source.types == kind)
         j = np.flatnonzero(target.types == kind)
         if i.size == 0 or j.size == 0:
             continue
-        diff = s.anchors[i][:, None, :] - target.anchors[j][None, :, :]  # (a, b, 3)
+        diff = anchors_s[i][:, None, :] - target.anchors[j][None, :, :]  # (a, b, 3)
         if kind == LandmarkType.POINT:
             ok = np.linalg.norm(diff, axis=2) < config.agree_m
         else:
