@@ -58,8 +58,16 @@ def merge(dirs: list[Path], json_path: Path | None, timed: list[Path]) -> None:
     from graffmatch.evaluation.sequence_benchmark import format_table, plot_pr
 
     res, walls = [], {}
+    keep: dict[Path, list[str]] = {}
+    for k, d in enumerate(dirs):  # FOLDER::PREFIX,PREFIX keeps only those methods of a run
+        if "::" in str(d):
+            folder, prefixes = str(d).split("::", 1)
+            dirs[k] = Path(folder)
+            keep[dirs[k]] = prefixes.split(",")
     for d in dirs:
         rows = json.loads((d / "results.json").read_text())
+        if d in keep:
+            rows = [r for r in rows if any(r["method"].startswith(p) for p in keep[d])]
         for r in rows:
             r["run_dir"] = str(d)
         res += rows
@@ -123,7 +131,8 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--merge", type=Path, nargs="+", default=None,
                     help="only merge the results.json of these --out folders (same scans, methods run "
-                    "in separate processes) into one table and --json")
+                    "in separate processes) into one table and --json; FOLDER::PREFIX,... keeps only the "
+                    "methods of that run whose names start so")
     args = ap.parse_args()
     if args.merge:
         merge(args.merge, args.json, args.timed or [])

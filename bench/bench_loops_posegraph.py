@@ -16,7 +16,9 @@ Each is optimised twice: the plain graph (``estimate_odometry_bias=False``) and 
 graph (a heading-rate bias estimated for the drive). ``oracle`` rows put a ground-truth loop
 edge at every query that has an earlier scan within 5 m (outside the 10 s window): what the
 graph gives with perfect loops, to tell the loops' quality from what the graph can observe.
-ATE = evo's APE RMSE (translation, SE(3)-aligned); RPE over 10 frames.
+ATE = evo's APE RMSE (translation, SE(3)-aligned); RPE over 10 frames. With ``--kiss-icp DIR``
+the KISS-ICP odometry that ``bench_loops.py --methods mapclosures`` wrote
+(``DIR/<drive>/mapclosures/kiss_icp_kitti.txt``) is used as well (drift ``kiss-icp``).
 """
 
 from __future__ import annotations
@@ -62,12 +64,13 @@ def main() -> None:
     ap.add_argument("--drives", nargs="+", default=DRIVES)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--drifts", nargs="+", default=list(DRIFTS), choices=list(DRIFTS))
+    ap.add_argument("--kiss-icp", type=Path, default=None, help="bench_loops.py --methods mapclosures --out folder")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--plots", type=Path, default=None, help="trajectory_<drive>.png (default drift, seed 0)")
     args = ap.parse_args()
 
     from graffmatch.datasets.registry import open_dataset
-    from graffmatch.loops.io import loop_edges, read_loops_csv
+    from graffmatch.loops.io import loop_edges, read_kitti, read_loops_csv
     from graffmatch.loops.posegraph import (
         OdometryDriftConfig,
         PoseGraphConfig,
@@ -84,34 +87,40 @@ def main() -> None:
         gt, ts = np.asarray(ds.poses, float), np.asarray(ds.timestamps, float)
         loops = read_loops_csv(args.runs / name / "ours" / "loops.csv")
         sources = {"ours": loop_edges(loops), "oracle": oracle_edges(gt, ts)}
-        for drift in args.drifts:
-            for seed in args.seeds:
+        kiss = None if args.kiss_icp is None else args.kiss_icp / name / "mapclosures" / "kiss_icp_kitti.txt"
+        runs = [(d, s) for d in args.drifts for s in args.seeds]
+        if kiss is not None and kiss.is_file():
+            runs.append(("kiss-icp", args.seeds[0]))
+        for drift, seed in runs:
+            if drift == "kiss-icp":
+                odo = read_kitti(kiss)
+            else:
                 odo = drifted_odometry(gt, OdometryDriftConfig(seed=seed, **DRIFTS[drift]))
-                before = trajectory_errors(odo, gt)
-                for src, edges in sources.items():
-                    if src == "oracle" and seed != args.seeds[0]:
-                        continue
-                    for graph, bias in (("plain", False), ("heading-bias", True)):
-                        t = time.perf_counter()
-                        opt, info = optimize_pose_graph(odo, edges, PoseGraphConfig(estimate_odometry_bias=bias))
-                        after = trajectory_errors(opt, gt)
-                        row = {"drive": name, "drift": drift, "seed": seed, "loops": src, "graph": graph,
-                               "n_loop_edges": len(edges), "first_loop_query": min((e[1] for e in edges), default=None),
-                               "ate_before_m": before["ate_rmse_m"], "ate_after_m": after["ate_rmse_m"],
-                               "ratio": after["ate_rmse_m"] / before["ate_rmse_m"],
-                               "rpe_before_m": before["rpe_rmse_m"], "rpe_after_m": after["rpe_rmse_m"],
-                               "heading_bias_deg_per_100m": info.get("odometry_heading_bias_deg_per_100m"),
-                               "iterations": info["iterations"], "optimize_s": time.perf_counter() - t}
-                        rows.append(row)
-                        print(f"{name:16s} {drift:8s} s{seed} {src:6s} {graph:12s} edges {len(edges):3d} "
-                              f"ATE {row['ate_before_m']:.2f} -> {row['ate_after_m']:.2f} m ({row['ratio']:.2f}) "
-                              f"RPE {row['rpe_before_m']:.3f} -> {row['rpe_after_m']:.3f} m"
-                              + (f" bias {row['heading_bias_deg_per_100m']:+.2f} deg/100m" if bias else ""),
-                              flush=True)
-                        if (args.plots and src == "ours" and bias and drift == "default"
-                                and seed == args.seeds[0]):
-                            args.plots.mkdir(parents=True, exist_ok=True)
-                            plot_trajectories(args.plots / f"loops_trajectory_{name}.png", gt, odo, opt, loops)
+            before = trajectory_errors(odo, gt)
+            for src, edges in sources.items():
+                if src == "oracle" and seed != args.seeds[0]:
+                    continue
+                for graph, bias in (("plain", False), ("heading-bias", True)):
+                    t = time.perf_counter()
+                    opt, info = optimize_pose_graph(odo, edges, PoseGraphConfig(estimate_odometry_bias=bias))
+                    after = trajectory_errors(opt, gt)
+                    row = {"drive": name, "drift": drift, "seed": seed, "loops": src, "graph": graph,
+                           "n_loop_edges": len(edges), "first_loop_query": min((e[1] for e in edges), default=None),
+                           "ate_before_m": before["ate_rmse_m"], "ate_after_m": after["ate_rmse_m"],
+                           "ratio": after["ate_rmse_m"] / before["ate_rmse_m"],
+                           "rpe_before_m": before["rpe_rmse_m"], "rpe_after_m": after["rpe_rmse_m"],
+                           "heading_bias_deg_per_100m": info.get("odometry_heading_bias_deg_per_100m"),
+                           "iterations": info["iterations"], "optimize_s": time.perf_counter() - t}
+                    rows.append(row)
+                    print(f"{name:16s} {drift:8s} s{seed} {src:6s} {graph:12s} edges {len(edges):3d} "
+                          f"ATE {row['ate_before_m']:.2f} -> {row['ate_after_m']:.2f} m ({row['ratio']:.2f}) "
+                          f"RPE {row['rpe_before_m']:.3f} -> {row['rpe_after_m']:.3f} m"
+                          + (f" bias {row['heading_bias_deg_per_100m']:+.2f} deg/100m" if bias else ""),
+                          flush=True)
+                    if (args.plots and src == "ours" and bias and drift == "default"
+                            and seed == args.seeds[0]):
+                        args.plots.mkdir(parents=True, exist_ok=True)
+                        plot_trajectories(args.plots / f"loops_trajectory_{name}.png", gt, odo, opt, loops)
     ours = [r for r in rows if r["loops"] == "ours"]
     print("\nsummary (ours' loops): ATE after / before, mean and max over seeds")
     for drift in args.drifts:

@@ -8,8 +8,9 @@ extraction and per-scan precomputation excluded, on the benchmark drives' cached
 Needs the landmark tables of ``bench/bench_loops.py --prepare`` (``--runs``). For each drive the
 database (landmark maps, descriptors, quick-check indices) is built once, untimed, like
 extraction; then every ``--stride``-th query is timed serially, one process, in each mode
-(wall and CPU time of the query: mean, median, p90, p95; the quick-check and verification
-parts; the load average before and after the drive):
+(wall and CPU time of the query: mean, median, p90, p95; its parts: retrieval, the quick check
+of all candidates, the verifications; candidates passing the quick check and verified; the load
+average before and after the drive):
 
 * ``verify-all-5``: top-5 descriptor candidates, every one verified (the previous pipeline);
 * ``quick-5``: top-5 candidates, the BEV quick check, passing ones verified best first, stop at
@@ -94,6 +95,7 @@ def main() -> None:
                 det.detect(q)
             qs = [q for q in range(0, len(db), args.stride) if eligible_count(db.timestamps, q, cfg.retrieval) > 0]
             per, cpu, ver_s, nver, nloop = [], [], [], [], 0
+            ret_s, quick_s, npass = [], [], []
             load_a = os.getloadavg()[0]
             for q in qs:
                 c0 = time.process_time()
@@ -101,8 +103,12 @@ def main() -> None:
                 loops = det.detect(q)
                 per.append(time.perf_counter() - t0)
                 cpu.append(time.process_time() - c0)
-                nver.append(sum(r["verified"] for r in det.last_records))
-                ver_s.append(sum(r.get("verify_seconds", 0.0) for r in det.last_records))
+                recs = det.last_records
+                nver.append(sum(r["verified"] for r in recs))
+                ver_s.append(sum(r.get("verify_seconds", 0.0) for r in recs))
+                ret_s.append(det.timings["retrieve"][-1])
+                quick_s.append(sum(r["seconds"] - r.get("verify_seconds", 0.0) for r in recs))
+                npass.append(sum(r["quick_pass"] for r in recs))
                 nloop += bool(loops)
             per_a, ver_a = 1e3 * np.asarray(per), 1e3 * np.asarray(ver_s)
             row = {"drive": drive, "mode": mode, "queries": len(qs), "ms_per_query_mean": float(per_a.mean()),
@@ -111,6 +117,9 @@ def main() -> None:
                    "cpu_ms_per_query_mean": 1e3 * float(np.mean(cpu)),
                    "verify_ms_per_query_mean": float(ver_a.mean()),
                    "other_ms_per_query_mean": float((per_a - ver_a).mean()),  # retrieval + quick check + records
+                   "retrieve_ms_per_query_mean": 1e3 * float(np.mean(ret_s)),
+                   "quick_check_ms_per_query_mean": 1e3 * float(np.mean(quick_s)),
+                   "quick_passing_per_query": float(np.mean(npass)),
                    "ms_per_verification": float(ver_a.sum() / max(sum(nver), 1)),
                    "verified_per_query": float(np.mean(nver)), "queries_with_loop": nloop,
                    "load_before": load_a, "load_after": os.getloadavg()[0]}
