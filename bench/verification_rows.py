@@ -58,8 +58,10 @@ def run(out: Path, every: int, sims: bool) -> list[dict]:
 
 
 def compare(a: list[dict], b: list[dict]) -> int:
-    """Print the rows that differ; returns how many differ in the decision (valid or correct)."""
-    assert len(a) == len(b), "different pair lists"
+    """Print the rows that differ; returns how many differ in the decision (valid or correct).
+    ``b`` may hold a subset of ``a``'s pairs (``--every``): rows are matched by pair."""
+    by_pair = {(r["ds"], r["i"], r["ds2"], r["j"]): r for r in a}
+    a = [by_pair[(r["ds"], r["i"], r["ds2"], r["j"])] for r in b]
     keys = ("valid", "correct", "overlap", "ratio", "conflict", "confidence", "message", "n_hyp")
     n_T = n_other = n_dec = 0
     max_dT = 0.0

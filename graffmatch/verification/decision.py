@@ -58,14 +58,31 @@ def merge_hypotheses(hyps: list[Hypothesis], cfg: VerificationConfig,
     if not hyps:
         return []
 
+    order = _rank_order(hyps, by)
+    Ts = np.ascontiguousarray(np.stack([hyps[i].T_target_source for i in order]), dtype=np.float64)
+    kept = _distinct_rows(Ts, float(cfg.merge_deg), float(cfg.merge_m))
+    return [hyps[order[a]] for a in kept]
+
+
+def _rank_order(hyps: list[Hypothesis], by: str) -> list[int]:
+    """Indices of ``hyps`` best first by (``by`` desc, well-conditioned first, more associations,
+    higher objective), ties in list order: one stable ``np.lexsort`` (Python's ``sorted`` with a
+    key tuple, the specification, for lists holding NaN, which the two order differently)."""
+    obj = np.array([h.objective for h in hyps], dtype=np.float64)
+    first = obj if by == "objective" else np.array([h.score for h in hyps], dtype=np.float64)
+    if np.isnan(first).any() or np.isnan(obj).any():
+        return _rank_order_reference(hyps, by)
+    n = np.array([len(h.associations) for h in hyps], dtype=np.int64)
+    degenerate = np.array([bool(h.degenerate) for h in hyps])
+    return np.lexsort((-obj, -n, degenerate, -first)).tolist()
+
+
+def _rank_order_reference(hyps: list[Hypothesis], by: str) -> list[int]:
     def rank(h: Hypothesis) -> tuple:
         first = h.score if by == "score" else h.objective
         return (-first, h.degenerate, -h.n_associations, -h.objective)
 
-    order = sorted(range(len(hyps)), key=lambda i: rank(hyps[i]))
-    Ts = np.ascontiguousarray(np.stack([hyps[i].T_target_source for i in order]), dtype=np.float64)
-    kept = _distinct_rows(Ts, float(cfg.merge_deg), float(cfg.merge_m))
-    return [hyps[order[a]] for a in kept]
+    return sorted(range(len(hyps)), key=lambda i: rank(hyps[i]))
 
 
 @nb.njit(cache=True)

@@ -57,9 +57,20 @@ class SupportCloud:
     _occ_table: tuple | None = field(default=None, repr=False)
     _occ_table_voxel: float = field(default=0.0, repr=False)
     _range_images: dict = field(default_factory=dict, repr=False)
+    _samples: dict = field(default_factory=dict, repr=False)
 
     def __len__(self) -> int:
         return len(self.points)
+
+    def sample(self, n: int) -> NDArray[np.float64]:
+        """``min(n, len)`` points evenly spread over the cloud (C-contiguous; built once per n):
+        what the occupancy pass moves."""
+        P = self._samples.get(n)
+        if P is None:
+            k = min(n, len(self.points))
+            idx = np.linspace(0, len(self.points) - 1, k).astype(np.int64)
+            P = self._samples[n] = np.ascontiguousarray(self.points[idx], dtype=np.float64)
+        return P
 
     def range_image(self, az_deg: float, el_deg: float, neighbours: int) -> RangeImage | None:
         """The free-space image of this scan (built on first use), or None without its returns."""
@@ -132,8 +143,8 @@ def occupancy_overlap(
     out = np.zeros((len(Ts), 2))
     Ts = np.ascontiguousarray(Ts, dtype=np.float64)
     for k, (a, b) in enumerate(((source, target), (target, source))):
-        n = min(n_points, len(a))
-        P = np.ascontiguousarray(a.points[np.linspace(0, len(a) - 1, n).astype(np.int64)], dtype=np.float64)
+        P = a.sample(n_points)
+        n = len(P)
         table = b.occupied_table(voxel)  # target -> source (k = 1): the inverse transforms
         out[:, k] = occupied_hits(P, Ts, k == 1, voxel, b.occupancy_origin, *table) / n
     return out
@@ -162,7 +173,13 @@ def _occupancy_overlap_reference(
 
 def voxel_downsample(points: NDArray, voxel: float, max_points: int) -> NDArray[np.float64]:
     """One point per occupied voxel (the first, deterministic), then an even stride to the cap."""
-    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    P = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+    ok, idx = _first_per_voxel(P, float(voxel))
+    if ok:  # one compiled pass (below: its numpy specification, for coordinates it cannot key)
+        P = P[idx]
+        if len(P) > max_points:
+            P = P[np.linspace(0, len(P) - 1, max_points).astype(np.int64)]
+        return P
     P = P[np.all(np.isfinite(P), axis=1)]
     if len(P) == 0:
         return P
@@ -178,6 +195,50 @@ def voxel_downsample(points: NDArray, voxel: float, max_points: int) -> NDArray[
     if len(P) > max_points:
         P = P[np.linspace(0, len(P) - 1, max_points).astype(np.int64)]
     return P
+
+
+@nb.njit(cache=True)
+def _first_per_voxel(P: NDArray[np.float64], voxel: float) -> tuple[bool, NDArray[np.int64]]:
+    """Rows of the finite points that are the first in their voxel, in row order (what
+    :func:`voxel_downsample`'s numpy path keeps), or (False, _) when a voxel index or the
+    voxel box is too large for int64 keys (then that path answers)."""
+    n = P.shape[0]
+    keys = np.empty((n, 3), np.int64)
+    rows = np.empty(n, np.int64)
+    m = 0
+    lo = np.zeros(3, np.int64)
+    hi = np.zeros(3, np.int64)
+    for i in range(n):
+        if not (np.isfinite(P[i, 0]) and np.isfinite(P[i, 1]) and np.isfinite(P[i, 2])):
+            continue
+        for j in range(3):
+            f = np.floor(P[i, j] / voxel)
+            if not abs(f) < 2.0**62:
+                return False, rows[:0]
+            k = int(f)
+            keys[m, j] = k
+            if m == 0 or k < lo[j]:
+                lo[j] = k
+            if m == 0 or k > hi[j]:
+                hi[j] = k
+        rows[m] = i
+        m += 1
+    if m == 0:
+        return True, rows[:0]
+    d0, d1, d2 = hi[0] - lo[0] + 1, hi[1] - lo[1] + 1, hi[2] - lo[2] + 1
+    if not float(d0) * float(d1) * float(d2) < 2.0**62:
+        return False, rows[:0]
+    flat = np.empty(m, np.int64)
+    for a in range(m):
+        flat[a] = ((keys[a, 0] - lo[0]) * d1 + (keys[a, 1] - lo[1])) * d2 + (keys[a, 2] - lo[2])
+    keep = first_of_each(flat)
+    out = np.empty(m, np.int64)
+    c = 0
+    for a in range(m):
+        if keep[a]:
+            out[c] = rows[a]
+            c += 1
+    return True, out[:c]
 
 
 @nb.njit(cache=True)

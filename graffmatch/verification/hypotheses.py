@@ -346,7 +346,7 @@ def rival_cliques(
     allowed = ~consistent
     if allowed.sum() < 2:
         return []
-    wdeg = np.asarray(W[allowed].sum(axis=1)).ravel()
+    wdeg = np.asarray(W.sum(axis=1)).ravel()[allowed]  # (row sums as of W[allowed], without the copy)
     idx = np.flatnonzero(allowed)
     starts = idx[np.argsort(-wdeg, kind="stable")[: max(n_starts, 1)]]
     return [Candidate(c, "rival") for c in greedy_cliques(W, starts, allowed)]

@@ -299,3 +299,35 @@ def test_compiled_cell_hash_build_equals_the_numpy_build(seed, n, scale, offset,
     for g, w in zip(got.near_bitmap(), want._near_bitmap_reference(), strict=True):
         np.testing.assert_array_equal(g, w)
     assert len(got.dense) > 0 or len(got.tk) > 0
+
+
+@SETTINGS
+@given(rows=st.lists(st.tuples(st.sampled_from([0.0, -0.0, 0.25, 0.5, 1.0, np.inf]),
+                               st.sampled_from([1.0, 2.5, 2.5, 7.0, -0.0]), st.booleans(), st.integers(2, 5)),
+                     min_size=1, max_size=40),
+       by=st.sampled_from(["score", "objective"]))
+def test_rank_order_equals_the_sorted_key_reference(rows, by):
+    from graffmatch.verification.decision import Hypothesis, _rank_order, _rank_order_reference
+
+    hyps = [Hypothesis(np.eye(4), np.zeros((k, 2), np.int64), "greedy", obj, 1.0, deg, score=sc)
+            for sc, obj, deg, k in rows]
+    assert _rank_order(hyps, by) == _rank_order_reference(hyps, by)
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(0, 500), scale=st.sampled_from([0.5, 20.0, 1e4]),
+       offset=st.sampled_from([0.0, -37.3, 1e7]), voxel=st.sampled_from([0.05, 0.3, 1.1]),
+       cap=st.sampled_from([5, 100, 10**6]), bad=st.booleans())
+def test_voxel_downsample_equals_its_numpy_path(seed, n, scale, offset, voxel, cap, bad):
+    rng = np.random.default_rng(seed)
+    P = _cloud(rng, n, scale, offset) if n >= 6 else rng.normal(size=(n, 3))
+    if bad and len(P) > 2:
+        P[1, 2] = np.inf
+        P[2, 0] = np.nan
+    want = P[np.all(np.isfinite(P), axis=1)]
+    if len(want):
+        keys = np.floor(want / voxel).astype(np.int64)
+        want = want[np.sort(np.unique(keys, axis=0, return_index=True)[1])]
+        if len(want) > cap:
+            want = want[np.linspace(0, len(want) - 1, cap).astype(np.int64)]
+    np.testing.assert_array_equal(E.voxel_downsample(P, voxel, cap), want)
