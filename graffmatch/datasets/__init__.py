@@ -2,6 +2,7 @@
 folders, and an explicit registry (:func:`open_dataset`)."""
 
 from graffmatch.datasets.base import Dataset, Scan, ScanSequence
+from graffmatch.datasets.deskewed import Deskewed
 from graffmatch.datasets.folder import KittiFolder
 from graffmatch.datasets.kitti import KittiOdometry
 from graffmatch.datasets.kitti360 import Kitti360
@@ -11,6 +12,7 @@ from graffmatch.datasets.registry import available, open_dataset, register
 __all__ = [
     "NCLT",
     "Dataset",
+    "Deskewed",
     "Kitti360",
     "KittiFolder",
     "KittiOdometry",
