@@ -121,3 +121,20 @@ def test_row_order_is_source_landmark_then_target_distance():
         row = g.indices[g.indptr[u]:g.indptr[u + 1]].tolist()
         assert row == expected
     assert g.n_edges > 100
+
+
+def test_matcher_builds_compact_graph_only_without_verification(monkeypatch):
+    """match() without verification solves on the compact (uint16) graph; with verification,
+    whose hypotheses read graph.weights, the graph is int32 from the start (no widening copy)."""
+    import graffmatch.matcher as gm
+    from graffmatch.verification.config import VerificationConfig
+
+    seen = []
+    build = gm.build_consistency_graph
+    monkeypatch.setattr(gm, "build_consistency_graph", lambda *a, **k: seen.append(build(*a, **k)) or seen[-1])
+    sc = make_scene_pair(6, 12, seed=2)
+    a = gm.GraffMatcher(gm.GraffMatchConfig(verification=VerificationConfig(enabled=False))).match(sc.source, sc.target)
+    assert seen[-1].indices.dtype == np.uint16
+    b = gm.GraffMatcher().match(sc.source, sc.target)
+    assert seen[-1].indices.dtype == np.int32
+    assert a.n_edges == b.n_edges > 0
