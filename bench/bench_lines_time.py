@@ -23,6 +23,7 @@ import numpy as np
 from _common import machine, write_json
 from verification import load_sources, make_pairs
 
+from graffmatch.geometry.landmarks import LandmarkType
 from graffmatch.matcher import GraffMatchConfig, GraffMatcher
 from graffmatch.verification.config import VerificationConfig
 
@@ -39,9 +40,11 @@ def main() -> None:
     matchers = {k: GraffMatcher(GraffMatchConfig(landmark_types=["line"], verification=VerificationConfig(
         pair_hypotheses=v))) for k, v in variants.items()}
     report: dict = {"machine": machine(), "load_before": os.getloadavg(), "suites": {}}
-    for suite in ("sim-downtown", "sim-suburban"):
-        sel = [p for p in pairs if p["split"] == "test" and p["positive"] and p["ds"] == suite][: a.pairs]
+    for suite in ("sim-downtown", "sim-suburban", "sim-openroad"):
         lms = src[suite]["lms"]
+        poles = [int(np.sum(ls.types == LandmarkType.LINE)) for ls in lms]
+        sel = [p for p in pairs if p["split"] == "test" and p["positive"] and p["ds"] == suite
+               and min(poles[p["i"]], poles[p["j"]]) >= 2][: a.pairs]  # matchable: two poles each
         for m in matchers.values():  # warm-up (numba compilation, caches)
             m.match(lms[sel[0]["j"]], lms[sel[0]["i"]])
         wall = {k: [] for k in matchers}

@@ -500,7 +500,8 @@ def main() -> None:
           f"p95 {report['match_ms']['p95']:.1f} ms over {len(times)} pairs")
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps({**report, "rows": rows, "lines_only_rows": lines_rows}, indent=1,
+        slim = [{k: v for k, v in r.items() if k != "T"} for r in lines_rows]  # conflicts already computed
+        Path(a.json).write_text(json.dumps({**report, "rows": rows, "lines_only_rows": slim}, indent=1,
                                            default=float))
         print(f"wrote {a.json}")
 
