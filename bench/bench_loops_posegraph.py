@@ -19,6 +19,8 @@ graph gives with perfect loops, to tell the loops' quality from what the graph c
 ATE = evo's APE RMSE (translation, SE(3)-aligned); RPE over 10 frames. With ``--kiss-icp DIR``
 the KISS-ICP odometry that ``bench_loops.py --methods mapclosures`` wrote
 (``DIR/<drive>/mapclosures/kiss_icp_kitti.txt``) is used as well (drift ``kiss-icp``).
+``--synthetic N`` only times the two graphs on a synthetic drive of about N poses (a 40 m
+square driven again and again, a loop edge every 4th scan of every lap after the first).
 """
 
 from __future__ import annotations
@@ -57,10 +59,45 @@ def oracle_edges(poses: np.ndarray, timestamps: np.ndarray, window_s: float = 10
     return edges
 
 
+def time_synthetic(n: int) -> list[dict]:
+    """Wall/CPU seconds of the plain and the default graph on a ~n-pose square drive."""
+    from graffmatch.geometry.transforms import invert
+    from graffmatch.loops.posegraph import (
+        PoseGraphConfig,
+        drifted_odometry,
+        optimize_pose_graph,
+        trajectory_errors,
+    )
+
+    poses = []
+    for k in range(n):
+        side, s = divmod(k % 160, 40)
+        x, y = [(s, 0), (40, s), (40 - s, 40), (0, 40 - s)][side]
+        T = np.eye(4)
+        a = np.radians(90 * side)
+        T[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+        T[:2, 3] = x, y
+        poses.append(T)
+    gt = np.stack(poses)
+    info = np.diag([1e4] * 3 + [1e6] * 3)
+    edges = [(q - 160, q, invert(gt[q - 160]) @ gt[q], info) for q in range(160, n, 4)]
+    odo = drifted_odometry(gt)
+    rows = []
+    for bias in (False, True):
+        t, c = time.perf_counter(), time.process_time()
+        opt, _ = optimize_pose_graph(odo, edges, PoseGraphConfig(estimate_odometry_bias=bias))
+        rows.append({"poses": n, "loop_edges": len(edges), "estimate_odometry_bias": bias,
+                     "wall_s": time.perf_counter() - t, "cpu_s": time.process_time() - c,
+                     "ate_after_m": trajectory_errors(opt, gt)["ate_rmse_m"]})
+        print(rows[-1], flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=Path("/tmp/loops_bench/data"))
-    ap.add_argument("--runs", type=Path, required=True, help="bench_loops.py --out folder with the loops")
+    ap.add_argument("--runs", type=Path, default=None, help="bench_loops.py --out folder with the loops")
+    ap.add_argument("--synthetic", type=int, nargs="+", default=None, help="only time graphs of these sizes")
     ap.add_argument("--drives", nargs="+", default=DRIVES)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--drifts", nargs="+", default=list(DRIFTS), choices=list(DRIFTS))
@@ -68,6 +105,14 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--plots", type=Path, default=None, help="trajectory_<drive>.png (default drift, seed 0)")
     args = ap.parse_args()
+    if args.synthetic:
+        rows = [r for n in args.synthetic for r in time_synthetic(n)]
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
+        return
+    if args.runs is None:
+        ap.error("--runs is needed (or --synthetic)")
 
     from graffmatch.datasets.registry import open_dataset
     from graffmatch.loops.io import loop_edges, read_kitti, read_loops_csv

@@ -100,19 +100,21 @@ def _odometry_bias_factor(gtsam, i: int, j: int, Z: Array, step: float, noise):
     Z(w) = Z * Exp(-step w e_z); error = Log(Z(w)^-1 X_i^-1 X_j), as a BetweenFactor's."""
     Z3 = gtsam.Pose3(np.asarray(Z, float))
     zero = np.zeros(3)
+    # d Z(w) / d w as a right perturbation: -step e_z (the right Jacobian of Exp(theta e_z)
+    # leaves e_z unchanged)
+    dZ = np.zeros((6, 1))
+    dZ[2, 0] = -step
+    H1, H2 = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")  # reused: GTSAM fills them
+    Hz, Hx = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
 
     def error(this, values, H):
         Xi, Xj, w = values.atPose3(i), values.atPose3(j), float(values.atVector(BIAS_KEY)[0])
-        Jw = np.zeros((3, 3), order="F")  # right Jacobian of Exp at -step w e_z
-        Zb = Z3.compose(gtsam.Pose3(gtsam.Rot3.Expmap(np.array([0.0, 0.0, -step * w]), Jw), zero))
-        H1, H2 = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
+        Zb = Z3.compose(gtsam.Pose3(gtsam.Rot3.Rz(-step * w), zero))
+        if H is None:  # error only (LM's trial steps): no Jacobians
+            return Zb.localCoordinates(Xi.between(Xj))
         between = Xi.between(Xj, H1, H2)
-        Hz, Hx = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
         e = Zb.localCoordinates(between, Hz, Hx)
-        if H is not None:
-            dZ = np.zeros((6, 1))  # right perturbation of Z(w) per unit of w
-            dZ[:3, 0] = -step * Jw[:, 2]
-            H[0], H[1], H[2] = Hx @ H1, Hx @ H2, Hz @ dZ
+        H[0], H[1], H[2] = Hx @ H1, Hx @ H2, Hz @ dZ
         return e
 
     return gtsam.CustomFactor(noise, [i, j, BIAS_KEY], error)
