@@ -12,6 +12,10 @@ its cost on clouds of a few thousand points; a cloud whose coordinates do not fi
 falls back to the KD-tree. What depends on one scan only (downsampled support,
 cell hashes, dilated occupancy) is computed once per :class:`LandmarkSet` and kept in
 :data:`evidence_cache`, so one scan verified against k candidates pays for it once.
+
+The module runs past 600 lines on purpose: each compiled pass (downsampling, occupancy,
+alignment, landmark pairs) sits next to the numpy reference that specifies it and that the
+tests compare it with, bit for bit; split apart, the pair would drift.
 """
 
 from __future__ import annotations
