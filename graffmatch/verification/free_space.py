@@ -41,13 +41,9 @@ class RangeImage:
     @classmethod
     def from_points(cls, points: NDArray, az_deg: float = 1.0, el_deg: float = 1.0,
                     neighbours: int = 1) -> RangeImage:
-        na, ne = int(round(360.0 / az_deg)), int(round(180.0 / el_deg))
-        img = np.full((na, ne), np.inf)
-        P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        P = P[np.isfinite(P).all(axis=1)]
-        if len(P):
-            a, e, r = _cells(P, az_deg, el_deg, na, ne)
-            _spread_min(a, e, r, int(neighbours), img)
+        img, cells = _empty_image(points, az_deg, el_deg)
+        if cells is not None:
+            _spread_min(*cells, int(neighbours), img)
         return cls(img, az_deg, el_deg)
 
     @classmethod
@@ -55,12 +51,9 @@ class RangeImage:
                                neighbours: int = 1) -> RangeImage:
         """numpy / scipy specification of :meth:`from_points` (per-cell minimum, then a
         minimum filter wrapping in azimuth and clamped in elevation)."""
-        na, ne = int(round(360.0 / az_deg)), int(round(180.0 / el_deg))
-        img = np.full((na, ne), np.inf)
-        P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        P = P[np.isfinite(P).all(axis=1)]
-        if len(P):
-            a, e, r = _cells(P, az_deg, el_deg, na, ne)
+        img, cells = _empty_image(points, az_deg, el_deg)
+        if cells is not None:
+            a, e, r = cells
             np.minimum.at(img, (a, e), r)
         if neighbours > 0:
             size = 2 * neighbours + 1
@@ -79,6 +72,16 @@ class RangeImage:
         with np.errstate(invalid="ignore"):
             bad = known & (r < R - np.maximum(margin, margin_rel * R))
         return int(bad.sum()), int(known.sum())
+
+
+def _empty_image(points: NDArray, az_deg: float, el_deg: float) -> tuple[NDArray[np.float64], tuple | None]:
+    """An all-unknown (inf) image of the cell grid, and the cells of the finite points (None:
+    no finite point); what the compiled image and its reference share."""
+    na, ne = int(round(360.0 / az_deg)), int(round(180.0 / el_deg))
+    img = np.full((na, ne), np.inf)
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    P = P[np.isfinite(P).all(axis=1)]
+    return img, (_cells(P, az_deg, el_deg, na, ne) if len(P) else None)
 
 
 def _cells(P: NDArray[np.float64], az_deg: float, el_deg: float, na: int, ne: int

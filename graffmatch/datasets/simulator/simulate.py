@@ -14,7 +14,6 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from graffmatch.datasets.simulator import writer
 from graffmatch.datasets.simulator.motion import (
-    deskew_scan,
     perturb_poses,
     sweep_poses,
     sweep_twist,
@@ -31,6 +30,7 @@ from graffmatch.datasets.simulator.world import World, WorldConfig, build_world,
 from graffmatch.errors import InvalidInputError
 from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.geometry.transforms import invert
+from graffmatch.lidar.deskew import deskew_in_sequence
 
 #: Bumped whenever the world, sensor or trajectory model changes what a seed produces.
 SIMULATOR_VERSION = "1.2"
@@ -168,9 +168,8 @@ def simulate_dataset(
             world, T, prof, _scan_rng(seed, i), return_landmarks=True, sweep=sweep, dynamic=dyn
         )
         labels = noisy_labels(labels, real, np.random.default_rng([int(seed), 0x1AB, i]))
-        if real.deskew and n > 1:
-            a, b = max(i - 1, 0), min(i + 1, n - 1)
-            pts = deskew_scan(pts, poses[a], poses[b], float(b - a))
+        if real.deskew:
+            pts = deskew_in_sequence(pts, poses, i)
         writer.write_scan(out, i, pts, labels)
         c = np.bincount(lm[lm >= 0], minlength=len(world.landmarks))
         nz = np.flatnonzero(c)
