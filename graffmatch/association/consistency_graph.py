@@ -40,6 +40,9 @@ class ConsistencyGraph:
     indptr: NDArray[np.int64]
     indices: NDArray[np.integer]
     data: NDArray[np.floating]
+    # Row sums of ``data``, set only by :func:`build_consistency_graph`, whose weights are in
+    # (0, 1] with no diagonal by construction: the solver then skips its validation pass.
+    weighted_degrees: NDArray[np.float64] | None = None
 
     @property
     def m(self) -> int:
@@ -159,26 +162,40 @@ def _squarings(epsilon: float, inv_two_sigma2: float) -> int:
     return max(0, int(np.ceil(np.log2(max(x_min, 1e-300) / 0.5))))
 
 
+# Largest table of one row's windows per source landmark kept from the counting pass for the
+# filling pass (m x n_i x 2 int32; 13 MB at W3) instead of merging the sorted runs twice.
+_MAX_WINDOW_TABLE_BYTES = 64 * 2**20
+
+
 @nb.njit(cache=True)
 def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_two_sigma2, n_groups, weights,
-           index, squarings):
+           index, squarings, keep_windows):
     """Symmetric CSR (indptr, indices, data) of the graph over the associations ``assoc``
     (``lookup[a, b]`` = vertex id or -1), with ``index``'s and ``weights``' dtypes (empty
     arrays), written row by row: row u = (a, b) takes, for every other source landmark a2 of
     group t, the window of b's sorted distances to group t within epsilon of D_i[a, a2]. Each
     row is written once, in order (no scattered writes); a first pass counts the row lengths
-    (with ``all_valid``, every same-group pair is an association: the window sizes)."""
+    (with ``all_valid``, every same-group pair is an association: the window sizes). With
+    ``keep_windows`` the first pass stores every row's windows for the second (one merge of the
+    sorted runs per row instead of two). Also returns the weighted degrees (row sums of the
+    stored weights, summed in order as :func:`~graffmatch.association.clipper.solve_clipper`'s
+    validation pass does), so the solver need not read the graph once more for them."""
     m = assoc.shape[0]
     n_i = D_i.shape[0]
     vals, b2s, start = _row_pair_tables(D_j, groups_j, n_groups)
     src_vals, src_a2s, src_start = _row_pair_tables(D_i, groups_i, n_groups)
     win0 = np.zeros(n_i, dtype=np.int64)
     win1 = np.zeros(n_i, dtype=np.int64)
+    table = np.empty((m if keep_windows else 0, 2, n_i), dtype=np.int32)
     indptr = np.zeros(m + 1, dtype=np.int64)
     longest = 0
     for u in range(m):
         a, b = assoc[u, 0], assoc[u, 1]
         _row_windows(src_vals, src_a2s, src_start, vals, start, a, b, n_groups, epsilon, win0, win1)
+        if keep_windows:
+            for a2 in range(n_i):
+                table[u, 0, a2] = win0[a2]
+                table[u, 1, a2] = win1[a2]
         c = 0
         for a2 in range(n_i):
             if a2 == a:
@@ -192,11 +209,17 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
         longest = max(longest, c)
     indices = np.empty(indptr[m], dtype=index.dtype)
     data = np.empty(indptr[m], dtype=weights.dtype)
+    wdeg = np.zeros(m)
     buf_x = np.empty(longest)
     buf_w = np.empty(longest)
     for u in range(m):
         a, b = assoc[u, 0], assoc[u, 1]
-        _row_windows(src_vals, src_a2s, src_start, vals, start, a, b, n_groups, epsilon, win0, win1)
+        if keep_windows:
+            for a2 in range(n_i):
+                win0[a2] = table[u, 0, a2]
+                win1[a2] = table[u, 1, a2]
+        else:
+            _row_windows(src_vals, src_a2s, src_start, vals, start, a, b, n_groups, epsilon, win0, win1)
         pos = indptr[u]
         n = 0
         for a2 in range(n_i):
@@ -213,9 +236,12 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
                 n += 1
         # the row's weights in one branch-free (vectorised) loop
         _exp_nonpositive(buf_x, buf_w, n, squarings)
+        s = 0.0
         for t in range(n):
             data[pos + t] = buf_w[t]
-    return indptr, indices, data
+            s += data[pos + t]
+        wdeg[u] = s
+    return indptr, indices, data, wdeg
 
 
 def build_consistency_graph(
@@ -273,8 +299,9 @@ def build_consistency_graph(
     lookup[assoc[:, 0], assoc[:, 1]] = np.arange(m)
     index = np.empty(0, dtype=np.uint16 if compact and m <= 2**16 else np.int32)
     same_group_pairs = int(np.bincount(gi, minlength=n_groups) @ np.bincount(gj, minlength=n_groups))
-    indptr, indices, data = _build(
+    indptr, indices, data, wdeg = _build(
         D_i, D_j, gi, gj, assoc, lookup, m == same_group_pairs, float(epsilon), inv2s2, n_groups,
         np.empty(0, dtype=dtype), index, _squarings(float(epsilon), inv2s2),
+        m * n_i * 8 <= _MAX_WINDOW_TABLE_BYTES and n_j * n_j < 2**31,  # int32 window ends
     )
-    return ConsistencyGraph(assoc, indptr, indices, data)
+    return ConsistencyGraph(assoc, indptr, indices, data, wdeg)

@@ -429,3 +429,59 @@ def test_step_cap_keeps_the_selection_with_fewer_matvecs():
         mv["capped"] += a.matvecs
         mv["plain"] += b.matvecs
     assert mv["capped"] < 0.9 * mv["plain"], mv
+
+
+def test_dense_blocks_equal_a_numpy_reference_and_shrink_from_the_previous_block():
+    """The dense block of an active set (w on edges, -d on non-edges, 1 on the diagonal)
+    equals a numpy reference, and the block of a subset at a new d gathered from the previous
+    block equals the block built from the CSR rows, bit for bit."""
+    from graffmatch.association.clipper import _dense_block, _dense_block_shrink
+
+    rng = np.random.default_rng(3)
+    W = planted_graph(400, 40, 0.3, rng).astype(np.float32).tocsr()
+    A = W.toarray()
+    rows = np.sort(rng.choice(400, 250, replace=False))
+    d = 0.37
+    ref = np.where(A[np.ix_(rows, rows)] != 0, A[np.ix_(rows, rows)], np.float32(-d)).astype(np.float32)
+    np.fill_diagonal(ref, 1.0)
+    block = _dense_block(W.indptr, W.indices, W.data, rows, d)
+    assert block.dtype == np.float32 and np.array_equal(block, ref)
+    sub = np.sort(rng.choice(rows.size, 90, replace=False))  # positions in ``rows``
+    shrunk = _dense_block_shrink(block, sub, 5.25)
+    assert np.array_equal(shrunk, _dense_block(W.indptr, W.indices, W.data, rows[sub], 5.25))
+    assert (shrunk == np.float32(-5.25)).sum() == (ref[np.ix_(sub, sub)] < 0).sum() > 0
+
+
+def test_builder_degrees_replace_the_validation_pass():
+    """A graph from build_consistency_graph carries its weighted degrees (bit for bit the
+    validation pass's), and the solver, which then skips that pass, selects exactly what it
+    selects without them; on street graphs and random graphs with planted cliques."""
+    from graffmatch.association.clipper import _check_graph
+    from graffmatch.association.consistency_graph import ConsistencyGraph, build_consistency_graph
+    from graffmatch.datasets.landmark_scene import make_scene_pair
+    from graffmatch.geometry.distance import pairwise_distances
+    from graffmatch.matcher import GraffMatchConfig
+
+    cfg = GraffMatchConfig().solver
+    graphs = []
+    for seed in (0, 1):
+        sc = make_scene_pair(12, 24, seed=seed)
+        graphs.append(build_consistency_graph(pairwise_distances(sc.source), pairwise_distances(sc.target),
+                                              types_i=sc.source.types, types_j=sc.target.types))
+    rng = np.random.default_rng(21)
+    for m, n_in in ((500, 25), (300, 60)):
+        W = planted_graph(m, n_in, 0.3, rng).astype(np.float32).tocsr()
+        perm = rng.permutation(m)
+        W = W[perm][:, perm].tocsr()
+        g = ConsistencyGraph(np.zeros((m, 2), dtype=np.int64), W.indptr.astype(np.int64), W.indices, W.data)
+        valid, diagonal, wdeg = _check_graph(g.indptr, g.indices, g.data)
+        g.weighted_degrees = wdeg
+        graphs.append(g)
+    for g in graphs:
+        assert g.weighted_degrees is not None
+        valid, diagonal, wdeg = _check_graph(g.indptr, g.indices, g.data)
+        assert valid and not diagonal and np.array_equal(wdeg, g.weighted_degrees)
+        a = solve_clipper(g, cfg)
+        b = solve_clipper(ConsistencyGraph(g.associations, g.indptr, g.indices, g.data), cfg)
+        assert a.selected.size >= 10
+        assert np.array_equal(a.selected, b.selected) and np.array_equal(a.u, b.u) and a.matvecs == b.matvecs
