@@ -4,7 +4,9 @@ plus the raw-scan path ``ScanMatcher.register`` (ICP on the scans). Medians, p95
 the process's peak RSS and the load average during the run.
 
 ``with (cold)`` clears the per-scan evidence cache (``graffmatch.verification.evidence.
-evidence_cache``) before every call: a pair seen for the first time. ``with (warm)`` keeps it:
+evidence_cache``) and the per-set cache of distances and landmark arrays
+(``graffmatch.geometry.set_cache.derived_cache``) before every call: a pair seen for the first
+time. ``with (warm)`` keeps it:
 a scan verified against several candidates (loop detection) pays for its support cloud once.
 Calls of the three variants are interleaved, so load changes hit them alike. Each call is timed
 twice: wall clock, and the process's CPU time (``time.process_time``), which leaves out the time
@@ -42,6 +44,10 @@ try:
     from graffmatch.verification.evidence import evidence_cache
 except ImportError:  # code before the per-scan cache (for before/after runs of this script)
     evidence_cache = None
+try:
+    from graffmatch.geometry.set_cache import derived_cache
+except ImportError:  # code before the per-set cache of distances and landmark arrays
+    derived_cache = None
 
 
 def interleaved(fns: dict, repeat: int) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
@@ -109,6 +115,8 @@ def main() -> None:
         def cold(s=s, t=t):
             if evidence_cache is not None:
                 evidence_cache.clear()
+            if derived_cache is not None:
+                derived_cache.clear()
             return on.match(s, t)
 
         ts, cpu = interleaved({"without": lambda s=s, t=t: off.match(s, t), "cold": cold,

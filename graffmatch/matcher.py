@@ -24,6 +24,7 @@ from graffmatch.association.putative import GatingConfig, putative_associations
 from graffmatch.errors import DegenerateGeometryError, InvalidInputError
 from graffmatch.geometry.distance import pairwise_distances
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
+from graffmatch.geometry.set_cache import derived_cache
 from graffmatch.registration.closed_form import register_landmarks
 from graffmatch.verification.config import VerificationConfig
 from graffmatch.verification.decision import Hypothesis
@@ -327,8 +328,17 @@ class GraffMatcher:
         self.config = config or GraffMatchConfig()
 
     def distance_matrix(self, landmarks: LandmarkSet) -> NDArray[np.float64]:
-        """Intra-scan matrix; cache it per scan when matching one scan against many."""
-        return pairwise_distances(landmarks, self.config.rho, self.config.variant)
+        """Intra-scan matrix (read-only), computed once per set of arrays (``derived_cache``):
+        a scan matched against several candidates pays for it once."""
+        rho, variant = self.config.rho, self.config.variant
+
+        def make() -> NDArray[np.float64]:
+            D = pairwise_distances(landmarks, rho, variant)
+            D.setflags(write=False)
+            return D
+
+        return derived_cache.get(("intra_distances", float(rho), variant),
+                                 (landmarks.types, landmarks.bases, landmarks.anchors), make)
 
     def match(
         self,

@@ -966,6 +966,148 @@ def _register_kernel(bounds: NDArray[np.int64], w: Array, ts: NDArray[np.int64],
         fragile[gi] = frag
 
 
+@nb.njit(cache=True)
+def _scan_batch(A: NDArray[np.int64], g: NDArray[np.int64], w: Array, ts: NDArray[np.int8], tt: NDArray[np.int8],
+                check_w: bool) -> tuple[int, int, bool, bool, bool]:
+    """The input checks of :func:`_register_batch_reference` in one pass: (min group, max group,
+    an association index out of range, a pair of different types (among in-range pairs), a
+    weight not finite or negative)."""
+    k = A.shape[0]
+    g_min = g[0]
+    g_max = g[0]
+    a_bad = False
+    type_bad = False
+    w_bad = False
+    for i in range(k):
+        if g[i] < g_min:
+            g_min = g[i]
+        if g[i] > g_max:
+            g_max = g[i]
+        a, b = A[i, 0], A[i, 1]
+        if a < 0 or b < 0 or a >= ts.shape[0] or b >= tt.shape[0]:
+            a_bad = True
+        elif ts[a] != tt[b]:
+            type_bad = True
+        if check_w and not (np.isfinite(w[i]) and w[i] >= 0):
+            w_bad = True
+    return g_min, g_max, a_bad, type_bad, w_bad
+
+
+@nb.njit(cache=True)
+def _sort_groups(g: NDArray[np.int64], w: Array, G: int) -> tuple[NDArray[np.int64], NDArray[np.int64], bool]:
+    """``np.argsort(g, kind="stable")`` (a counting sort: the same permutation), the group bounds
+    of the sorted rows, and whether a non-empty group has no positive weight (the sums in input
+    order, as ``np.bincount``)."""
+    k = g.shape[0]
+    count = np.zeros(G, np.int64)
+    wsum = np.zeros(G)
+    for i in range(k):
+        count[g[i]] += 1
+        wsum[g[i]] += w[i]
+    bounds = np.empty(G + 1, np.int64)
+    bounds[0] = 0
+    for j in range(G):
+        bounds[j + 1] = bounds[j] + count[j]
+    pos = bounds[:-1].copy()
+    order = np.empty(k, np.int64)
+    for i in range(k):
+        order[pos[g[i]]] = i
+        pos[g[i]] += 1
+    bad = False
+    for j in range(G):
+        if count[j] > 0 and wsum[j] <= 0:
+            bad = True
+    return order, bounds, bad
+
+
+@nb.njit(cache=True)
+def _gather_batch(order: NDArray[np.int64], A: NDArray[np.int64], w: Array, ts: NDArray[np.int8], dir_s: Array,
+                  dir_t: Array, anc_s: Array, anc_t: Array) -> tuple:
+    """The kernel's group-sorted inputs: weights, types, directions and anchors of each pair."""
+    k = order.shape[0]
+    ws = np.empty(k)
+    tso = np.empty(k, np.int64)
+    ds = np.empty((k, 3))
+    dt = np.empty((k, 3))
+    bs = np.empty((k, 3))
+    bt = np.empty((k, 3))
+    for j in range(k):
+        i = order[j]
+        a, b = A[i, 0], A[i, 1]
+        ws[j] = w[i]
+        tso[j] = ts[a]
+        for c in range(3):
+            ds[j, c] = dir_s[a, c]
+            dt[j, c] = dir_t[b, c]
+            bs[j, c] = anc_s[a, c]
+            bt[j, c] = anc_t[b, c]
+    return ws, tso, ds, dt, bs, bt
+
+
+@nb.njit(cache=True)
+def _nan_max(a: float, b: float) -> float:
+    """``np.maximum`` of two floats (NaN if either is NaN)."""
+    if a != a or b != b:
+        return np.nan
+    return a if a >= b else b
+
+
+@nb.njit(cache=True)
+def _finish_batch(R: Array, t: Array, S: Array, lam: Array, kappa_max: float, reasons: NDArray[np.int64]) -> tuple:
+    """Transforms, condition numbers, ranks and degeneracy from the kernel's outputs: the
+    reference's elementwise formulas (the same IEEE operations on the same values), per group;
+    marks groups whose kappa meets ``kappa_max`` within rounding in ``reasons`` (4096)."""
+    G = R.shape[0]
+    tol = 1e-9
+    T = np.zeros((G, 4, 4))
+    kappa = np.empty(G)
+    k_rot = np.empty(G)
+    k_tr = np.empty(G)
+    rot_rank = np.empty(G, np.int64)
+    tr_rank = np.empty(G, np.int64)
+    degenerate = np.empty(G, np.bool_)
+    sv = np.empty(3)
+    for gi in range(G):
+        s0 = _nan_max(S[gi, 0], 1e-300)
+        n = 0
+        for j in range(3):
+            if S[gi, j] > tol * s0:
+                n += 1
+        rot_rank[gi] = n if S[gi, 0] > 0 else 0
+        s1 = S[gi, 1]
+        k_rot[gi] = S[gi, 0] / (s1 if s1 > 0 else 1.0) if s1 > tol * s0 else np.inf
+        for j in range(3):
+            x = lam[gi, 2 - j]
+            sv[j] = np.sqrt(0.0 if x < 0 else x)
+        v0 = _nan_max(sv[0], 1e-300)
+        n = 0
+        for j in range(3):
+            if sv[j] > tol * v0:
+                n += 1
+        tr_rank[gi] = n if sv[0] > 0 else 0
+        k_tr[gi] = sv[0] / (sv[2] if sv[2] > 0 else 1.0) if sv[2] > tol * v0 else np.inf
+        kp = _nan_max(k_rot[gi], k_tr[gi])
+        kappa[gi] = kp
+        if abs(kp - kappa_max) <= 1e-8 * abs(kappa_max):
+            reasons[gi] |= 4096
+        degenerate[gi] = not np.isfinite(kp) or kp > kappa_max
+        for a in range(3):
+            for b in range(3):
+                T[gi, a, b] = R[gi, a, b]
+            T[gi, a, 3] = t[gi, a]
+        T[gi, 3, 3] = 1.0
+    return T, kappa, k_rot, k_tr, rot_rank, tr_rank, degenerate
+
+
+@nb.njit(cache=True)
+def _unsort(x: Array, order: NDArray[np.int64]) -> Array:
+    """Rows of group-sorted ``x`` back in input order (``x[inv]`` with ``inv[order] = arange``)."""
+    out = np.empty_like(x)
+    for j in range(order.shape[0]):
+        out[order[j]] = x[j]
+    return out
+
+
 def register_batch(
     source: LandmarkSet,
     target: LandmarkSet,
@@ -1007,33 +1149,37 @@ def _register_batch_numba(
     line_anchor_weight: float, weak_ratio: float, upright_min: float = UPRIGHT_MIN,
 ) -> tuple[BatchRegistration, NDArray[np.int64]]:
     """:func:`register_batch` plus each group's fragility bits (:data:`FRAGILE_REASONS`)."""
-    A = np.asarray(associations, dtype=np.int64).reshape(-1, 2)
+    A = np.ascontiguousarray(np.asarray(associations, dtype=np.int64).reshape(-1, 2))
     k = len(A)
-    g = np.zeros(k, np.int64) if groups is None else np.asarray(groups, dtype=np.int64).reshape(-1)
+    g = np.zeros(k, np.int64) if groups is None else np.ascontiguousarray(np.asarray(groups, dtype=np.int64).reshape(-1))
     if g.shape != (k,):
         raise InvalidInputError(f"groups must have one entry per association ({k}), got {g.shape}")
     if k == 0:
         raise DegenerateGeometryError("no associations to register")
-    if g.min() < 0:
+    w = np.ones(k) if weights is None else np.ascontiguousarray(np.asarray(weights, dtype=float).reshape(-1))
+    ts_s = source.types if source.types.dtype == np.int8 else source.types.astype(np.int8)
+    tt_s = target.types if target.types.dtype == np.int8 else target.types.astype(np.int8)
+    # the checks of the reference, in its order, from one compiled pass over the inputs
+    w_shape_ok = w.shape == (k,)
+    g_min, g_max, a_bad, type_bad, w_bad = _scan_batch(A, g, w if w_shape_ok else np.ones(k), ts_s, tt_s,
+                                                       weights is not None and w_shape_ok)
+    if g_min < 0:
         raise InvalidInputError("group indices must be non-negative")
-    G = int(g.max()) + 1 if n_groups is None else int(n_groups)
-    if g.max() >= G:
+    G = int(g_max) + 1 if n_groups is None else int(n_groups)
+    if g_max >= G:
         raise InvalidInputError("group index out of range")
-    if A[:, 0].max() >= len(source) or A[:, 1].max() >= len(target) or A.min() < 0:
+    if a_bad:
         raise InvalidInputError("association index out of range")
-    ts = source.types[A[:, 0]]
-    if np.any(ts != target.types[A[:, 1]]):
+    if type_bad:
         raise InvalidInputError("associations must pair landmarks of the same type")
-    w = np.ones(k) if weights is None else np.asarray(weights, dtype=float).reshape(-1)
-    if w.shape != (k,) or not np.all(np.isfinite(w)) or np.any(w < 0):
+    if not w_shape_ok or w_bad:
         raise InvalidInputError("weights must be finite, non-negative, one per association")
-    wsum_g = np.bincount(g, weights=w, minlength=G)
-    if np.any((np.bincount(g, minlength=G) > 0) & (wsum_g <= 0)):
+    order, bounds, empty_weight = _sort_groups(g, w, G)
+    if empty_weight:
         raise InvalidInputError("every group needs a positive weight")
-
-    order = np.argsort(g, kind="stable")
-    As, gs, ws = A[order], g[order], np.ascontiguousarray(w[order])
-    bounds = np.searchsorted(gs, np.arange(G + 1)).astype(np.int64)
+    ws, tso, ds, dt, bs, bt = _gather_batch(order, A, w, ts_s, _directions_of(source), _directions_of(target),
+                                            np.ascontiguousarray(source.anchors, dtype=np.float64),
+                                            np.ascontiguousarray(target.anchors, dtype=np.float64))
     R = np.empty((G, 3, 3))
     t = np.empty((G, 3))
     S = np.zeros((G, 3))
@@ -1045,36 +1191,18 @@ def _register_batch_numba(
     off = np.empty(k)
     reasons = np.zeros(G, np.int64)
     _register_kernel(
-        bounds, ws, ts[order].astype(np.int64),
-        np.ascontiguousarray(_directions_of(source)[As[:, 0]], dtype=np.float64),
-        np.ascontiguousarray(_directions_of(target)[As[:, 1]], dtype=np.float64),
-        np.ascontiguousarray(source.anchors[As[:, 0]], dtype=np.float64),
-        np.ascontiguousarray(target.anchors[As[:, 1]], dtype=np.float64),
+        bounds, ws, tso, ds, dt, bs, bt,
         float(parallel_spread), float(line_anchor_weight), float(weak_ratio), float(upright_min),
         R, t, S, lam, cost, used_pos, signs, ang, off, reasons,
     )
-    tol = 1e-9
-    S0 = np.maximum(S[:, 0], 1e-300)
-    rot_rank = np.sum(S > tol * S0[:, None], axis=1) * (S[:, 0] > 0)
-    k_rot = np.where(S[:, 1] > tol * S0, S[:, 0] / np.where(S[:, 1] > 0, S[:, 1], 1.0), np.inf)
-    sv = np.sqrt(np.clip(lam[:, ::-1], 0, None))
-    sv0 = np.maximum(sv[:, 0], 1e-300)
-    tr_rank = np.sum(sv > tol * sv0[:, None], axis=1) * (sv[:, 0] > 0)
-    k_tr = np.where(sv[:, 2] > tol * sv0, sv[:, 0] / np.where(sv[:, 2] > 0, sv[:, 2], 1.0), np.inf)
-    kappa = np.maximum(k_rot, k_tr)
-    reasons |= np.where(np.abs(kappa - kappa_max) <= 1e-8 * abs(kappa_max), 4096, 0)
+    T, kappa, k_rot, k_tr, rot_rank, tr_rank, degenerate = _finish_batch(R, t, S, lam, float(kappa_max), reasons)
     fragile = reasons != 0
-    T = np.tile(np.eye(4), (G, 1, 1))
-    T[:, :3, :3] = R
-    T[:, :3, 3] = t
-    inv = np.empty(k, np.int64)
-    inv[order] = np.arange(k)
     out = BatchRegistration(
         T_target_source=T, kappa=kappa, kappa_rotation=k_rot, kappa_translation=k_tr,
-        degenerate=~np.isfinite(kappa) | (kappa > kappa_max),
-        rotation_rank=rot_rank.astype(np.int64), translation_rank=tr_rank.astype(np.int64),
+        degenerate=degenerate, rotation_rank=rot_rank, translation_rank=tr_rank,
         cost=cost, used_line_positions=used_pos,
-        angle_residuals_deg=ang[inv], offset_residuals=off[inv], signs=signs[inv],
+        angle_residuals_deg=_unsort(ang, order), offset_residuals=_unsort(off, order),
+        signs=_unsort(signs, order),
     )
     if fragile.any():
         _solve_by_reference(out, source, target, A, g, w, G, fragile, kappa_max,

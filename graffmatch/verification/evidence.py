@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
+from graffmatch.geometry.set_cache import derived_cache
 from graffmatch.verification.cell_hash import (
     CellHash,
     _slot,
@@ -489,20 +490,22 @@ def landmark_overlap(
     anchors and the final means are numpy's, so results equal :func:`_landmark_overlap_reference`
     up to the last bits of the per-pair angles and offsets (tested to 1e-12).
     """
-    Ts, single, src, tgt = _overlap_inputs(source, target, T_target_source)
-    if len(src) == 0 or len(tgt) == 0:
+    Ts = np.asarray(T_target_source, dtype=float)
+    single = Ts.ndim == 2
+    Ts = Ts[None] if single else Ts
+    src, tgt = _ground_free(source), _ground_free(target)  # per set, once (set_cache)
+    if src.n == 0 or tgt.n == 0:
         return _no_overlap(len(Ts), single, counts)
     t = Ts[:, :3, 3]
     Rt = np.swapaxes(Ts[:, :3, :3], 1, 2)
     ds = np.ascontiguousarray(src.directions @ Rt)  # (H, ns, 3)
     bs = np.ascontiguousarray(src.anchors @ Rt + t[:, None, :])
-    H, ns, nt = len(Ts), len(src), len(tgt)
+    H, ns, nt = len(Ts), src.n, tgt.n
     ws = np.zeros((H, ns))
     wt = np.zeros((H, nt))
     oks = np.zeros((H, ns), np.bool_)
     okt = np.zeros((H, nt), np.bool_)
-    _landmark_pairs(ds, bs, np.ascontiguousarray(tgt.directions), np.ascontiguousarray(tgt.anchors),
-                    src.types.astype(np.int64), tgt.types.astype(np.int64), _reach(src), _reach(tgt),
+    _landmark_pairs(ds, bs, tgt.directions, tgt.anchors, src.types, tgt.types, src.reach, tgt.reach,
                     float(max_deg), float(max_m), ws, wt, oks, okt)
     out = np.stack([ws.mean(axis=1), wt.mean(axis=1)], axis=1)
     if counts is not None:
@@ -610,6 +613,34 @@ def _no_overlap(n: int, single: bool, counts: list | None) -> NDArray[np.float64
     if counts is not None:
         counts.append(np.zeros(n, np.int64))
     return out[0] if single else out
+
+@dataclass(frozen=True)
+class _GroundFree:
+    """What landmark-level evidence reads of one set without its ground plane (read-only)."""
+
+    n: int
+    types: NDArray[np.int64]
+    directions: NDArray[np.float64]
+    anchors: NDArray[np.float64]
+    reach: NDArray[np.float64]
+
+
+def _ground_free(ls: LandmarkSet) -> _GroundFree:
+    """:func:`_without_ground` of ``ls`` reduced to the arrays :func:`landmark_overlap` reads,
+    computed once per set of arrays (``derived_cache``): a scan scored against several
+    candidates, and every call of one verification, reuse them."""
+    def make() -> _GroundFree:
+        g = _without_ground(ls)
+        arrays = (g.types.astype(np.int64), np.ascontiguousarray(g.directions),
+                  np.ascontiguousarray(g.anchors), _reach(g))
+        for a in arrays:
+            a.setflags(write=False)
+        return _GroundFree(len(g), *arrays)
+
+    a = ls.attributes
+    return derived_cache.get("ground_free", (ls.types, ls.bases, ls.anchors, a.get("is_ground"), a.get("box"),
+                                             a.get("extent")), make)
+
 
 def _without_ground(ls: LandmarkSet) -> LandmarkSet:
     g = ls.attributes.get("is_ground")

@@ -109,12 +109,17 @@ def _gated(hyps: list[Hypothesis], gate: tuple[float, float], min_assoc: int) ->
     """Residual-gated variants: drop associations off by more than the gate (the clique may hold
     a few wrong ones). The ungated hypothesis stays a candidate, so the gate can never remove
     the constraints that fix the rotation without verification noticing."""
+    if not hyps:
+        return []
+    res = [h.info["residuals"] for h in hyps]  # the masks of all hypotheses in one pass
+    lengths = np.array([len(r[0]) for r in res], dtype=np.int64)
+    keep = (np.concatenate([r[0] for r in res]) <= gate[0]) & (np.concatenate([r[1] for r in res]) <= gate[1])
+    bounds = np.r_[0, np.cumsum(lengths)]
+    kept = np.bincount(np.repeat(np.arange(len(hyps)), lengths), weights=keep, minlength=len(hyps))
     out = []
-    for h in hyps:
-        off, ang = h.info["residuals"]
-        keep = (off <= gate[0]) & (ang <= gate[1])
-        if min_assoc <= keep.sum() < len(keep):
-            out.append(Candidate(h.info["vertices"][keep], h.origin + "+gate"))
+    for i in np.flatnonzero((kept >= min_assoc) & (kept < lengths)).tolist():
+        h = hyps[i]
+        out.append(Candidate(h.info["vertices"][keep[bounds[i]:bounds[i + 1]]], h.origin + "+gate"))
     return out
 
 
