@@ -169,7 +169,7 @@ _MAX_WINDOW_TABLE_BYTES = 64 * 2**20
 
 @nb.njit(cache=True)
 def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_two_sigma2, n_groups, weights,
-           index, squarings, keep_windows):
+           index, squarings, keep_windows, row_base, col_rank):
     """Symmetric CSR (indptr, indices, data) of the graph over the associations ``assoc``
     (``lookup[a, b]`` = vertex id or -1), with ``index``'s and ``weights``' dtypes (empty
     arrays), written row by row: row u = (a, b) takes, for every other source landmark a2 of
@@ -179,10 +179,18 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
     ``keep_windows`` the first pass stores every row's windows for the second (one merge of the
     sorted runs per row instead of two). Also returns the weighted degrees (row sums of the
     stored weights, summed in order as :func:`~graffmatch.association.clipper.solve_clipper`'s
-    validation pass does), so the solver need not read the graph once more for them."""
+    validation pass does), so the solver need not read the graph once more for them.
+
+    Non-empty ``row_base`` / ``col_rank``: ``lookup[a2, b2] = row_base[a2] + col_rank[b2]`` for
+    every same-group pair (all-to-all in :func:`all_to_all`'s order), so a vertex id is a
+    sequential read along the sorted run plus a base instead of a dependent lookup."""
     m = assoc.shape[0]
     n_i = D_i.shape[0]
     vals, b2s, start = _row_pair_tables(D_j, groups_j, n_groups)
+    affine = row_base.shape[0] > 0
+    col_k = np.empty(b2s.shape[0] if affine else 0, dtype=np.int64)
+    for k in range(col_k.shape[0]):
+        col_k[k] = col_rank[b2s[k]]
     src_vals, src_a2s, src_start = _row_pair_tables(D_i, groups_i, n_groups)
     win0 = np.zeros(n_i, dtype=np.int64)
     win1 = np.zeros(n_i, dtype=np.int64)
@@ -226,6 +234,14 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
             if a2 == a:
                 continue
             d = D_i[a, a2]
+            if affine:
+                base = row_base[a2]
+                for k in range(win0[a2], win1[a2]):
+                    indices[pos + n] = base + col_k[k]
+                    c = d - vals[k]
+                    buf_x[n] = -c * c * inv_two_sigma2
+                    n += 1
+                continue
             for k in range(win0[a2], win1[a2]):
                 v = lookup[a2, b2s[k]]
                 if v < 0:
@@ -242,6 +258,27 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
             s += data[pos + t]
         wdeg[u] = s
     return indptr, indices, data, wdeg
+
+
+def _affine_ids(lookup: NDArray, gi: NDArray[np.int64], gj: NDArray[np.int64]
+                ) -> tuple[NDArray[np.int64], NDArray[np.int64]] | tuple[None, None]:
+    """(row_base, col_rank) with ``lookup[a, b] = row_base[a] + col_rank[b]`` for every
+    same-group pair (col_rank: b's rank within its group), or (None, None) when the vertex
+    ids are not laid out that way (e.g. an explicit list in another order)."""
+    n_groups = int(max(gi.max(initial=0), gj.max(initial=0))) + 1
+    col_rank = np.zeros(gj.shape[0], dtype=np.int64)
+    first_b = np.full(n_groups, -1, dtype=np.int64)
+    for t in range(n_groups):
+        b = np.flatnonzero(gj == t)
+        col_rank[b] = np.arange(b.size)
+        if b.size:
+            first_b[t] = b[0]
+    fb = first_b[gi]
+    row_base = np.where(fb >= 0, lookup[np.arange(gi.shape[0]), np.maximum(fb, 0)], 0).astype(np.int64)
+    same = gi[:, None] == gj[None, :]
+    if not np.array_equal((row_base[:, None] + col_rank[None, :])[same], lookup[same]):
+        return None, None
+    return row_base, col_rank
 
 
 def build_consistency_graph(
@@ -299,9 +336,14 @@ def build_consistency_graph(
     lookup[assoc[:, 0], assoc[:, 1]] = np.arange(m)
     index = np.empty(0, dtype=np.uint16 if compact and m <= 2**16 else np.int32)
     same_group_pairs = int(np.bincount(gi, minlength=n_groups) @ np.bincount(gj, minlength=n_groups))
+    all_valid = m == same_group_pairs
+    row_base, col_rank = _affine_ids(lookup, gi, gj) if all_valid else (None, None)
+    if row_base is None:
+        row_base = col_rank = np.zeros(0, dtype=np.int64)
     indptr, indices, data, wdeg = _build(
-        D_i, D_j, gi, gj, assoc, lookup, m == same_group_pairs, float(epsilon), inv2s2, n_groups,
+        D_i, D_j, gi, gj, assoc, lookup, all_valid, float(epsilon), inv2s2, n_groups,
         np.empty(0, dtype=dtype), index, _squarings(float(epsilon), inv2s2),
         m * n_i * 8 <= _MAX_WINDOW_TABLE_BYTES and n_j * n_j < 2**31,  # int32 window ends
+        row_base, col_rank,
     )
     return ConsistencyGraph(assoc, indptr, indices, data, wdeg)

@@ -160,3 +160,34 @@ def test_stored_windows_give_the_same_graph_as_merging_twice(monkeypatch, gated)
     for name in ("indptr", "indices", "data", "weighted_degrees"):
         assert np.array_equal(getattr(stored, name), getattr(merged, name))
     assert np.allclose(stored.weighted_degrees, np.asarray(stored.weights.astype(np.float64).sum(axis=1)).ravel(), rtol=1e-12)
+
+
+def test_vertex_ids_from_row_bases_equal_the_lookup_table(monkeypatch):
+    """All-to-all graphs read vertex ids as row base + column rank along the sorted runs; the
+    lookup table gives the same CSR bit for bit, and a reordered explicit list (ids not laid
+    out that way) falls back to it and still equals the brute force."""
+    import graffmatch.association.consistency_graph as cg
+
+    sc = make_scene_pair(7, 12, seed=5)
+    Di, Dj = pairwise_distances(sc.source), pairwise_distances(sc.target)
+    kw = dict(types_i=sc.source.types, types_j=sc.target.types)
+    fast = build_consistency_graph(Di, Dj, **kw)
+    ids = cg._affine_ids(*_lookup_and_groups(fast, sc))
+    assert ids[0] is not None
+    monkeypatch.setattr(cg, "_affine_ids", lambda *a: (None, None))
+    slow = build_consistency_graph(Di, Dj, **kw)
+    for name in ("indptr", "indices", "data", "weighted_degrees"):
+        assert np.array_equal(getattr(fast, name), getattr(slow, name))
+    monkeypatch.undo()
+    perm = np.random.default_rng(1).permutation(fast.m)
+    shuffled = build_consistency_graph(Di, Dj, associations=fast.associations[perm], **kw)
+    lut = np.full((len(sc.source), len(sc.target)), -1)
+    lut[shuffled.associations[:, 0], shuffled.associations[:, 1]] = np.arange(fast.m)
+    assert cg._affine_ids(lut, sc.source.types.astype(np.int64), sc.target.types.astype(np.int64))[0] is None
+    assert np.allclose(shuffled.weights.toarray(), fast.weights.toarray()[np.ix_(perm, perm)], atol=0)
+
+
+def _lookup_and_groups(g, sc):
+    lut = np.full((len(sc.source), len(sc.target)), -1)
+    lut[g.associations[:, 0], g.associations[:, 1]] = np.arange(g.m)
+    return lut, sc.source.types.astype(np.int64), sc.target.types.astype(np.int64)
