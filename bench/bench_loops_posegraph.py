@@ -19,8 +19,11 @@ graph gives with perfect loops, to tell the loops' quality from what the graph c
 ATE = evo's APE RMSE (translation, SE(3)-aligned); RPE over 10 frames. With ``--kiss-icp DIR``
 the KISS-ICP odometry that ``bench_loops.py --methods mapclosures`` wrote
 (``DIR/<drive>/mapclosures/kiss_icp_kitti.txt``) is used as well (drift ``kiss-icp``).
-``--synthetic N`` only times the two graphs on a synthetic drive of about N poses (a 40 m
-square driven again and again, a loop edge every 4th scan of every lap after the first).
+``--synthetic N`` only times the graphs on a synthetic drive of about N poses (a 40 m
+square driven again and again, a loop edge every 4th scan of every lap after the first): the
+plain graph, the default graph (bias solver ``projection``) and, up to ``--joint-max`` poses,
+the joint custom-factor graph (bias solver ``joint``, O(n^2)); with the ATE, the bias, the
+number of plain solves and the peak RSS.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine
+from _common import machine, peak_rss_mb
 
 DRIFTS = {
     "default": {},
@@ -59,8 +62,9 @@ def oracle_edges(poses: np.ndarray, timestamps: np.ndarray, window_s: float = 10
     return edges
 
 
-def time_synthetic(n: int) -> list[dict]:
-    """Wall/CPU seconds of the plain and the default graph on a ~n-pose square drive."""
+def time_synthetic(n: int, joint_max: int = 0) -> list[dict]:
+    """Wall/CPU seconds of the plain, the default and (n <= joint_max) the joint graph on a
+    ~n-pose square drive."""
     from graffmatch.geometry.transforms import invert
     from graffmatch.loops.posegraph import (
         PoseGraphConfig,
@@ -83,12 +87,20 @@ def time_synthetic(n: int) -> list[dict]:
     edges = [(q - 160, q, invert(gt[q - 160]) @ gt[q], info) for q in range(160, n, 4)]
     odo = drifted_odometry(gt)
     rows = []
-    for bias in (False, True):
+    runs = [("plain", False, "projection"), ("projection", True, "projection")]
+    if n <= joint_max:
+        runs.append(("joint", True, "joint"))
+    for label, bias, solver in runs:
         t, c = time.perf_counter(), time.process_time()
-        opt, _ = optimize_pose_graph(odo, edges, PoseGraphConfig(estimate_odometry_bias=bias))
-        rows.append({"poses": n, "loop_edges": len(edges), "estimate_odometry_bias": bias,
+        opt, info = optimize_pose_graph(odo, edges, PoseGraphConfig(estimate_odometry_bias=bias, bias_solver=solver))
+        rows.append({"poses": n, "loop_edges": len(edges), "graph": label, "estimate_odometry_bias": bias,
+                     "bias_solver": solver if bias else None,
                      "wall_s": time.perf_counter() - t, "cpu_s": time.process_time() - c,
-                     "ate_after_m": trajectory_errors(opt, gt)["ate_rmse_m"]})
+                     "ate_before_m": trajectory_errors(odo, gt)["ate_rmse_m"],
+                     "ate_after_m": trajectory_errors(opt, gt)["ate_rmse_m"],
+                     "bias_deg_per_100m": info.get("odometry_heading_bias_deg_per_100m"),
+                     "bias_solves": info.get("bias_solves"), "lm_iterations": info["iterations"],
+                     "peak_rss_mb": peak_rss_mb()})
         print(rows[-1], flush=True)
     return rows
 
@@ -98,6 +110,7 @@ def main() -> None:
     ap.add_argument("--data", type=Path, default=Path("/tmp/loops_bench/data"))
     ap.add_argument("--runs", type=Path, default=None, help="bench_loops.py --out folder with the loops")
     ap.add_argument("--synthetic", type=int, nargs="+", default=None, help="only time graphs of these sizes")
+    ap.add_argument("--joint-max", type=int, default=0, help="--synthetic: also time the joint graph up to this size")
     ap.add_argument("--drives", nargs="+", default=DRIVES)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--drifts", nargs="+", default=list(DRIFTS), choices=list(DRIFTS))
@@ -106,7 +119,7 @@ def main() -> None:
     ap.add_argument("--plots", type=Path, default=None, help="trajectory_<drive>.png (default drift, seed 0)")
     args = ap.parse_args()
     if args.synthetic:
-        rows = [r for n in args.synthetic for r in time_synthetic(n)]
+        rows = [r for n in args.synthetic for r in time_synthetic(n, args.joint_max)]
         if args.json:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
