@@ -7,6 +7,16 @@ with ground-truth poses), on simulated drives with revisits and on balm_courtyar
 Drives (300 scans each, 1 m apart; routes chosen for revisits incl. reverse-direction ones):
 downtown seeds 1 and 5, suburban 1 and 4, open-road 1 and 3 (1800 scans), each with its
 suite's world and sensor.
+
+Raw, motion-distorted drives (session 7): ``--realism realistic`` simulates the same seeds with
+the suites' realistic preset (motion distortion within the sweep, movers, noisy labels; the car
+slows in turns, so a scan every 0.1 s is < 1 m apart: ``--scans 400``), and ``--deskew
+--odometry drift`` de-skews every simulated scan for every method with the same function as
+``graffmatch loops --deskew`` (``loops.sequence.prepare_drive``); ``balm_courtyard`` (real,
+a slow hand-held walk) is benchmarked as it is, in the same invocation:
+
+    PYTHONPATH=$PWD python bench/bench_loops.py --realism realistic --scans 400 --deskew \
+        --data /tmp/loops7-data --out /tmp/loops7-out --json bench/results/loops_session7.json
 """
 
 from __future__ import annotations
@@ -26,7 +36,9 @@ N_SCANS = 300
 COURTYARD = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "balm_courtyard"
 
 
-def simulate(root: Path, n_scans: int) -> list[Path]:
+def simulate(root: Path, n_scans: int, realism: str = "ideal") -> list[Path]:
+    """The six drives under ``root`` (``realism``: 'ideal' = session 1-6's clean, undistorted
+    scans; 'realistic' = the suites' preset: motion-distorted raw scans, movers, noisy labels)."""
     from graffmatch.datasets.simulator import SUITES, simulate_dataset
 
     out = []
@@ -37,7 +49,8 @@ def simulate(root: Path, n_scans: int) -> list[Path]:
             out.append(d)  # already simulated (kept as is: a newer simulator version would
             continue  # rewrite the files and invalidate the landmark cache)
         out.append(simulate_dataset(root / f"{name}-s{seed}", style=s.style, seed=seed, n_scans=n_scans,
-                                    sensor=s.sensor, world_config=s.world_config(), reuse=True))
+                                    sensor=s.sensor, world_config=s.world_config(), reuse=True,
+                                    realism=realism))
     return out
 
 
@@ -127,6 +140,9 @@ def main() -> None:
                     "rows' ms/query (the runs here are niced and loaded)")
     ap.add_argument("--only", nargs="+", default=None,
                     help="run only these sequences (folder names), in this order")
+    ap.add_argument("--realism", default="ideal", help="simulator realism preset of the drives (ideal, realistic)")
+    ap.add_argument("--deskew", action="store_true", help="de-skew the simulated drives (not the courtyard)")
+    ap.add_argument("--odometry", default="drift", help="--deskew: drift | gt | kiss-icp | PATH")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--merge", type=Path, nargs="+", default=None,
@@ -138,9 +154,13 @@ def main() -> None:
         merge(args.merge, args.json, args.timed or [])
         return
 
-    from graffmatch.evaluation.sequence_benchmark import benchmark_config, run_sequence_benchmark
+    from graffmatch.evaluation.sequence_benchmark import (
+        benchmark_config,
+        format_table,
+        run_sequence_benchmark,
+    )
 
-    seqs = simulate(args.data, args.scans)
+    seqs = simulate(args.data, args.scans, args.realism)
     if not args.no_courtyard and COURTYARD.is_dir():
         seqs.append(COURTYARD.resolve())
     if args.only:
@@ -148,8 +168,23 @@ def main() -> None:
         seqs = [by_name[n] for n in args.only]
     t0 = time.perf_counter()
     methods = ["ours"] if args.prepare else args.methods
-    table = run_sequence_benchmark(seqs, args.out, methods=methods, workers=args.workers,
-                                   config=benchmark_config(), extract_only=args.prepare)
+    groups = [(seqs, False)]
+    if args.deskew:  # the simulated drives de-skewed; the courtyard as it is, its results beside them
+        groups = [([p for p in seqs if p.name != "balm_courtyard"], True),
+                  ([p for p in seqs if p.name == "balm_courtyard"], False)]
+    results = []
+    for k, (group, deskew) in enumerate(groups):
+        if not group:
+            continue
+        out = args.out if k == 0 else args.out / "as-recorded"
+        run_sequence_benchmark(group, out, methods=methods, workers=args.workers, config=benchmark_config(),
+                               extract_only=args.prepare, deskew=deskew,
+                               odometry=args.odometry if deskew else None)
+        if not args.prepare:
+            results += json.loads((out / "results.json").read_text())
+    if len(groups) > 1 and results:
+        (args.out / "results.json").write_text(json.dumps(results, indent=1))
+    table = format_table(results) if results else ""
     wall = time.perf_counter() - t0
     print(table)
     print(f"wall {wall:.0f} s, peak RSS {peak_rss_mb():.0f} MB (driver)")

@@ -52,7 +52,8 @@ def register(app: typer.Typer) -> None:
     app.command(
         "benchmark-loops",
         epilog="[bold]Examples[/bold]\n\n  graffmatch benchmark-loops sim/drive1 sim/drive2 -o bench-loops\n\n"
-        "  graffmatch benchmark-loops data/balm_courtyard -m ours -m scan-context-icp",
+        "  graffmatch benchmark-loops data/balm_courtyard -m ours -m scan-context-icp\n\n"
+        "  graffmatch benchmark-loops sim/raw1 sim/raw2 --deskew --odometry drift -o bench-loops-deskew",
     )(cli_errors(benchmark_loops))
 
 
@@ -87,8 +88,8 @@ def loops(
 ) -> None:
     """Find every loop closure of a drive: landmarks per scan, retrieval, verified matching."""
     from graffmatch.loops.detector import LoopDetectorConfig
-    from graffmatch.loops.posegraph import OdometryDriftConfig, PoseGraphConfig, odometry_for
-    from graffmatch.loops.sequence import optimize_run, run_loops
+    from graffmatch.loops.posegraph import OdometryDriftConfig, PoseGraphConfig
+    from graffmatch.loops.sequence import optimize_run, prepare_drive, run_loops
 
     ds = _open(sequence, kind)
     cfg = LoopDetectorConfig()
@@ -104,13 +105,9 @@ def loops(
     cfg.verification.stop_when_accepted = not all_loops
     cfg = LoopDetectorConfig.model_validate(cfg.model_dump())
     out_dir = output or run_dir(STATE.runs_dir, "loops")
-    odo = None
-    if optimize or deskew or retriever == Retriever.radius:
-        odo = odometry_for(ds, odometry, OdometryDriftConfig(yaw_bias_deg_per_100m=drift_yaw, seed=drift_seed))
-    if deskew:
-        from graffmatch.datasets.deskewed import Deskewed
-
-        ds = Deskewed(ds, odo)
+    need_odometry = optimize or deskew or retriever == Retriever.radius
+    ds, odo = prepare_drive(ds, odometry if need_odometry else None, deskew,
+                            OdometryDriftConfig(yaw_bias_deg_per_100m=drift_yaw, seed=drift_seed))
     with make_progress() as progress:
         summary = run_loops(
             ds, out_dir, cfg, executor=executor.value, workers=workers, address=address,
@@ -141,15 +138,26 @@ def benchmark_loops(
     output: Annotated[Path | None, typer.Option("--output", "-o", help="Results folder.")] = None,
     methods: Annotated[list[str] | None, typer.Option("--method", "-m", help="ours | scan-context-icp | mapclosures | mapclosures-gt")] = None,
     workers: Annotated[int | None, typer.Option(min=1, help="Local worker processes.")] = None,
+    deskew: Annotated[
+        bool, typer.Option(help="De-skew raw scans with the odometry's motion first, for every method (as loops --deskew).")
+    ] = False,
+    odometry: Annotated[
+        str, typer.Option(help="--deskew: odometry whose motion de-skews: drift | gt | kiss-icp | PATH (KITTI poses).")
+    ] = "drift",
+    drift_yaw: Annotated[float, typer.Option(help="Simulated drift: heading bias (deg per 100 m).")] = 3.0,
+    drift_seed: Annotated[int, typer.Option(help="Simulated drift seed.")] = 0,
 ) -> None:
     """Sequence-level loop-closure benchmark: PR over confidence, F1-max, recall at 100 % precision."""
     from graffmatch.evaluation.sequence_benchmark import run_sequence_benchmark
+    from graffmatch.loops.posegraph import OdometryDriftConfig
 
     out_dir = output or run_dir(STATE.runs_dir, "benchmark-loops")
     with make_progress() as progress:
         table = run_sequence_benchmark(
             [Path(s) for s in sequences], out_dir, methods=list(methods) if methods else None,
-            workers=workers, progress=_progress_callback(progress),
+            workers=workers, progress=_progress_callback(progress), deskew=deskew,
+            odometry=odometry if deskew else None,
+            drift=OdometryDriftConfig(yaw_bias_deg_per_100m=drift_yaw, seed=drift_seed),
         )
     out.print(table)
     info(f"results -> {out_dir}")

@@ -229,10 +229,20 @@ def run_sequence_benchmark(
     progress: Callable | None = None,
     config: LoopDetectorConfig | None = None,
     extract_only: bool = False,
+    odometry: str | None = None,
+    deskew: bool = False,
+    drift=None,
 ) -> str:
-    """Run the methods on each sequence; writes results.json and pr_<seq>.png; returns a table."""
+    """Run the methods on each sequence; writes results.json and pr_<seq>.png; returns a table.
+
+    ``deskew`` (with ``odometry``: drift | gt | kiss-icp | a KITTI pose file; ``drift`` an
+    ``OdometryDriftConfig``) de-skews every raw scan for every method, through
+    :func:`graffmatch.loops.sequence.prepare_drive` as ``graffmatch loops --deskew`` does; the
+    sequence is then named ``<name>+deskew`` (its own folders and landmark cache keys).
+    """
     from graffmatch.datasets.registry import open_dataset
     from graffmatch.errors import InvalidInputError
+    from graffmatch.loops.sequence import prepare_drive
 
     methods = list(methods or ["ours", "scan-context-icp"])
     out_dir = Path(out_dir)
@@ -240,7 +250,7 @@ def run_sequence_benchmark(
     cfg = config or benchmark_config()
     results = []
     for seq in sequences:
-        ds = open_dataset("folder", seq)
+        ds, _ = prepare_drive(open_dataset("folder", seq), odometry if deskew else None, deskew, drift)
         if extract_only:
             from graffmatch.loops.sequence import build_database
 

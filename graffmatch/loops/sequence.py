@@ -234,6 +234,35 @@ def loops_from_records(records: dict[int, dict], min_confidence: float) -> list[
     return out
 
 
+def prepare_drive(
+    dataset: Dataset,
+    odometry: str | None = None,
+    deskew: bool = False,
+    drift: Any = None,
+) -> tuple[Dataset, NDArray | None]:
+    """The drive as the loop pipeline sees it, and its odometry poses (or None).
+
+    ``odometry``: ``drift`` | ``gt`` | ``kiss-icp`` | a KITTI pose file (see
+    :func:`graffmatch.loops.posegraph.odometry_for`; ``drift`` with ``drift``, an
+    ``OdometryDriftConfig``). With ``deskew`` every raw scan is moved into its mid-sweep frame
+    with that odometry's motion (:class:`graffmatch.datasets.Deskewed`: another name and cache
+    tag, so its landmarks never mix with the raw scans'). One function for ``graffmatch loops``
+    and ``graffmatch benchmark-loops``, so both see the same scans.
+    """
+    if deskew and odometry is None:
+        raise InvalidInputError("deskew needs an odometry (drift, gt, kiss-icp or a KITTI pose file)")
+    odo = None
+    if odometry is not None:
+        from graffmatch.loops.posegraph import odometry_for
+
+        odo = odometry_for(dataset, odometry, drift)
+    if deskew:
+        from graffmatch.datasets.deskewed import Deskewed
+
+        dataset = Deskewed(dataset, odo)
+    return dataset, odo
+
+
 def build_database(
     dataset: Dataset,
     out_dir: Path,
