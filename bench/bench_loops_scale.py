@@ -14,6 +14,14 @@ record (phase, wall, CPU, peak memory, load, queries done before and after) to
 ``<out>/scale_runs.jsonl``, and the JSON reports all of them, so a resumed run is stated as
 such. ``run_loops`` itself decides what a resume keeps (landmark tables whose scan file,
 labels and extractor config are unchanged; query records of the same database and config).
+
+``--posegraph`` only times the pose graph of a finished run (``--out``: its ``loops.csv``; the
+folder is only read) with the drive's poses under the default simulated drift (seeds
+``--drift-seeds``): the plain graph and the default graph (heading-rate bias), wall and CPU
+seconds, the process's peak RSS before and after, ATE/RPE before and after; run it timed:
+
+    flock /tmp/bench.lock env PYTHONPATH=$PWD python bench/bench_loops_scale.py --posegraph \
+        --json bench/results/loops_scale_posegraph.json
 """
 
 from __future__ import annotations
@@ -26,7 +34,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, write_json
+from _common import machine, peak_rss_mb, write_json
 
 
 def _process_tree(root: int) -> dict[int, tuple[int, float]]:
@@ -155,6 +163,44 @@ def _load_stats(loads: list[float]) -> dict:
     return {"min": float(a.min()), "mean": float(a.mean()), "max": float(a.max())}
 
 
+def time_posegraph(drive: Path, out: Path, seeds: list[int]) -> dict:
+    """The plain and the default pose graph of a finished run's loops, timed (see the docstring)."""
+    import numpy as np
+
+    from graffmatch.datasets.registry import open_dataset
+    from graffmatch.loops.io import loop_edges, read_loops_csv
+    from graffmatch.loops.posegraph import (
+        OdometryDriftConfig,
+        PoseGraphConfig,
+        drifted_odometry,
+        optimize_pose_graph,
+        trajectory_errors,
+    )
+
+    ds = open_dataset("folder", drive)
+    gt = np.asarray(ds.poses, float)
+    edges = loop_edges(read_loops_csv(out / "loops.csv"))
+    rows = []
+    for seed in seeds:
+        odo = drifted_odometry(gt, OdometryDriftConfig(seed=seed))
+        before = trajectory_errors(odo, gt)
+        for graph, bias in (("plain", False), ("default (heading-rate bias)", True)):
+            rss0 = peak_rss_mb()
+            t, c = time.perf_counter(), time.process_time()
+            opt, info = optimize_pose_graph(odo, edges, PoseGraphConfig(estimate_odometry_bias=bias))
+            wall, cpu = time.perf_counter() - t, time.process_time() - c
+            after = trajectory_errors(opt, gt)
+            rows.append({"seed": seed, "graph": graph, "poses": len(gt), "loop_edges": len(edges),
+                         "wall_s": wall, "cpu_s": cpu, "peak_rss_mb_before": rss0, "peak_rss_mb_after": peak_rss_mb(),
+                         "ate_before_m": before["ate_rmse_m"], "ate_after_m": after["ate_rmse_m"],
+                         "rpe_before_m": before["rpe_rmse_m"], "rpe_after_m": after["rpe_rmse_m"],
+                         "bias_deg_per_100m": info.get("odometry_heading_bias_deg_per_100m"),
+                         "bias_solves": info.get("bias_solves"), "lm_iterations": info["iterations"],
+                         "load_avg_1min": os.getloadavg()[0]})
+            print(rows[-1], flush=True)
+    return {"machine": machine(), "drive": str(drive), "run": str(out), "niced": os.nice(0), "rows": rows}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=Path("/tmp/loops_scale/data"))
@@ -169,7 +215,14 @@ def main() -> None:
     ap.add_argument("--status", action="store_true",
                     help="do not run: report the state of a run folder (--out), e.g. one still running "
                     "or cut by a deadline: tables extracted and their size, extraction span, queries done")
+    ap.add_argument("--posegraph", action="store_true",
+                    help="do not run: time the pose graph of the finished run in --out (read only)")
+    ap.add_argument("--drift-seeds", type=int, nargs="+", default=[0])
     args = ap.parse_args()
+    if args.posegraph:
+        drive = args.data / f"suburban-s{args.seed}-{args.scans}"
+        write_json(str(args.json) if args.json else None, time_posegraph(drive, args.out, args.drift_seeds))
+        return
     if args.status:
         write_json(str(args.json) if args.json else None, status(args.out))
         return
