@@ -237,18 +237,23 @@ def auc(score: np.ndarray, label: np.ndarray) -> float:
 
 
 #: Free-space range images compared on the calibration split: (azimuth deg, elevation deg,
-#: neighbour cells, margin m, relative margin).
-FREE_SPACE_VARIANTS = [(az, el, nb, mg, rel) for az, el in ((1.0, 1.0), (1.0, 2.0), (2.0, 2.0))
-                       for nb in (1, 2) for mg in (1.0, 2.0) for rel in (0.05, 0.1)]
+#: neighbour cells of the support points' image, margin m, relative margin, neighbour cells of
+#: the whole scan's image). Every set here comes from the extractor and carries its whole scan's
+#: image (``LandmarkSet.scan_ranges``), so the support points' neighbourhood stays at session 6's
+#: choice (1; it serves sets without that image). No shadowing neighbour first: with every return
+#: in the image a thin pole is in its own cell, and ties go to the earlier variant.
+FREE_SPACE_VARIANTS = [(az, el, 1, mg, rel, snb) for snb in (0, 1) for az, el in ((1.0, 1.0), (1.0, 2.0), (2.0, 2.0))
+                       for mg in (1.0, 2.0) for rel in (0.05, 0.1)]
 
 
-def free_space_conflicts(src: dict, rows: list[dict], variant: tuple) -> np.ndarray:
+def free_space_conflicts(src: dict, rows: list[dict], variant: tuple, use_scan_ranges: bool = True) -> np.ndarray:
     """Each pair's free-space conflict (max of both directions) at its matched transform, for
-    one range-image variant: what the matcher computes with those settings."""
+    one range-image variant: what the matcher computes with those settings
+    (``use_scan_ranges=False``: what it computes for sets without the whole scan's image)."""
     from graffmatch.verification.evidence import support_cloud
     from graffmatch.verification.free_space import conflict_fraction
 
-    az, el, nb, mg, rel = variant
+    az, el, nb, mg, rel, snb = variant
     clouds: dict = {}
 
     def cloud(ds: str, i: int):
@@ -263,7 +268,8 @@ def free_space_conflicts(src: dict, rows: list[dict], variant: tuple) -> np.ndar
         cs, ct = cloud(r["ds2"], r["j"]), cloud(r["ds"], r["i"])
         if cs is None or ct is None:
             continue
-        img_s, img_t = cs.range_image(az, el, nb), ct.range_image(az, el, nb)
+        img_s = cs.range_image(az, el, nb, snb, use_scan_ranges)
+        img_t = ct.range_image(az, el, nb, snb, use_scan_ranges)
         if img_s is None or img_t is None:
             continue
         out[k] = max(conflict_fraction(cs.points, ct.points, img_s, img_t, np.asarray(r["T"]), mg, rel,
@@ -410,7 +416,7 @@ def main() -> None:
     if a.lines_only:  # the lines-only pass alone, at the configured free-space range image
         base = VerificationConfig()
         variant = (base.free_space_az_deg, base.free_space_el_deg, base.free_space_neighbours,
-                   base.free_space_margin, base.free_space_margin_rel)
+                   base.free_space_margin, base.free_space_margin_rel, base.free_space_scan_neighbours)
         _, lines_rows = lines_only(src, pairs, variant)
         (out / "lines_only_rows.json").write_text(json.dumps(lines_rows, default=float))
         print(f"wrote {out / 'lines_only_rows.json'}")
@@ -438,7 +444,8 @@ def main() -> None:
     print(f"\nchosen on the calibration split ({len(cal)} pairs): min_overlap={mo}, max_rival_ratio={mr}, "
           f"max_conflict={mc}; confidence coef={tuple(round(c, 3) for c in coef)}")
     report: dict = {"thresholds": {"min_overlap": mo, "max_rival_ratio": mr, "max_conflict": mc},
-                    "free_space_variant": dict(zip(("az_deg", "el_deg", "neighbours", "margin", "margin_rel"),
+                    "free_space_variant": dict(zip(("az_deg", "el_deg", "neighbours", "margin", "margin_rel",
+                                                    "scan_neighbours"),
                                                    chosen["variant"], strict=True)),
                     "free_space_variants": [{k: v for k, v in d.items() if k != "conflicts"} for d in variants],
                     "confidence_coef": coef, "calibration": cal_m, "test": {}, "test_by_dataset": {}}
@@ -461,7 +468,11 @@ def main() -> None:
     m = report["test"]["chosen"]
     print(f"{'ALL (test)':<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
           f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
-    for label in ("defaults", "without free space"):
+    # sets without the whole scan's image (e.g. older landmark files): the support points' image
+    fallback = [dict(r, conflict=float(c)) for r, c in
+                zip(test, free_space_conflicts(src, test, chosen["variant"], use_scan_ranges=False), strict=True)]
+    report["test"]["support-point image"] = metrics(fallback, decide(fallback, mo, mr, mc))
+    for label in ("defaults", "without free space", "support-point image"):
         m = report["test"][label]
         print(f"{'ALL (test), ' + label:<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
               f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")

@@ -270,6 +270,19 @@ def _pose_from_meta(meta: dict) -> Array | str | None:
     return None if rows is None else np.r_[np.asarray(rows, dtype=float).reshape(3, 4), [[0.0, 0.0, 0.0, 1.0]]]
 
 
+def _scan_ranges(value: ArrayLike, validate: bool) -> Array:
+    """A whole-scan range image: 2-D float32, its cells tiling the sphere, ranges >= 0 or inf."""
+    img = np.asarray(value, dtype=np.float32)
+    if not validate:
+        return img
+    if img.ndim != 2 or img.shape[0] < 1 or img.shape[1] < 1 or 360 % img.shape[0] or 180 % img.shape[1]:
+        raise InvalidInputError(
+            f"scan_ranges must be (n_azimuth, n_elevation) with n dividing 360 and 180, got {img.shape}")
+    if np.isnan(img).any() or (img < 0).any():
+        raise InvalidInputError("scan_ranges must hold ranges >= 0 (inf: no return), not NaN or negative")
+    return img
+
+
 def _attrs(attributes: Mapping[str, ArrayLike]) -> dict[str, np.ndarray]:
     out = {}
     for k, v in attributes.items():
@@ -325,9 +338,15 @@ class LandmarkSet:
     sensor_pose : (4, 4) float64 or None, the sensor's pose in this frame: identity for a
         scan's landmarks (the default), moved by :meth:`transform`; None when unknown (a map
         merged from many viewpoints). Verification's free-space check needs it.
+    scan_ranges : (n_azimuth, n_elevation) float32 or None, the nearest return of the *whole*
+        scan per spherical cell around the sensor (inf: none), cell = 360/n_azimuth by
+        180/n_elevation degrees. The extractor stores it so that free space is what every
+        beam showed, not only the landmarks' support; it lives and dies with the support
+        points (in the sensor's frame, so a transform keeps it).
     """
 
-    __slots__ = ("anchors", "attributes", "bases", "point_offsets", "points", "sensor_pose", "types")
+    __slots__ = ("anchors", "attributes", "bases", "point_offsets", "points", "scan_ranges", "sensor_pose",
+                 "types")
 
     def __init__(
         self,
@@ -339,8 +358,10 @@ class LandmarkSet:
         point_offsets: ArrayLike | None = None,
         validate: bool = True,
         sensor_pose: ArrayLike | str | None = "identity",
+        scan_ranges: ArrayLike | None = None,
     ) -> None:
         self.sensor_pose = _sensor_pose(sensor_pose)
+        self.scan_ranges = None if scan_ranges is None else _scan_ranges(scan_ranges, validate)
         if not validate:  # internal fast path: arrays that came out of a validated set
             self.types = np.asarray(types, dtype=np.int8).reshape(-1)
             self.bases = np.asarray(bases, dtype=np.float64)
@@ -511,6 +532,8 @@ class LandmarkSet:
             pts,
             offs,
             sensor_pose=o0 if same else None,  # one viewpoint, or unknown
+            scan_ranges=sets[0].scan_ranges if same and pts is not None and all(
+                s.scan_ranges is sets[0].scan_ranges for s in sets) else None,  # parts of one scan
         )
 
     # ---- container protocol --------------------------------------------------------
@@ -541,6 +564,7 @@ class LandmarkSet:
             offs,
             validate=False,
             sensor_pose=self.sensor_pose,
+            scan_ranges=None if pts is None else self.scan_ranges,
         )
 
     def landmark(self, i: int) -> Landmark:
@@ -635,6 +659,7 @@ class LandmarkSet:
             self.point_offsets,
             validate=False,
             sensor_pose=None if self.sensor_pose is None else T @ self.sensor_pose,
+            scan_ranges=None if self.sensor_pose is None else self.scan_ranges,  # sensor frame: unchanged
         )
 
     def without_points(self) -> LandmarkSet:
@@ -658,6 +683,8 @@ class LandmarkSet:
         if include_points and self.points is not None:
             arrays["points"] = self.points
             arrays["point_offsets"] = self.point_offsets  # type: ignore[assignment]
+            if self.scan_ranges is not None:
+                arrays["scan_ranges"] = self.scan_ranges
         meta: dict = {"format": "graffmatch-landmarks", "version": 1}
         if self.sensor_pose is None:
             meta["sensor_pose"] = None
@@ -691,6 +718,7 @@ class LandmarkSet:
                 attrs = {k[5:]: z[k] for k in z.files if k.startswith("attr.")}
                 pts = z["points"] if "points" in z.files else None
                 offs = z["point_offsets"] if "point_offsets" in z.files else None
+                scan_ranges = z["scan_ranges"] if "scan_ranges" in z.files else None
         except MalformedFileError:
             raise
         except (
@@ -710,7 +738,8 @@ class LandmarkSet:
             attrs = {
                 k: (v.astype(np.float64) if v.dtype.kind == "f" else v) for k, v in attrs.items()
             }
-            return cls(types, bases, anchors, attrs, pts, offs, sensor_pose=_pose_from_meta(meta))
+            return cls(types, bases, anchors, attrs, pts, offs, sensor_pose=_pose_from_meta(meta),
+                       scan_ranges=scan_ranges)
         except (InvalidInputError, ValueError, TypeError, IndexError) as exc:
             raise MalformedFileError(f"{path}: invalid landmark file ({exc})") from exc
 

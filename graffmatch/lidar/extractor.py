@@ -34,6 +34,7 @@ from graffmatch.lidar.planes import (
 )
 from graffmatch.lidar.poles import PoleConfig, PoleResult, poles_geometric, poles_semantic
 from graffmatch.lidar.voxels import VoxelCloud, build_voxel_grid
+from graffmatch.verification.free_space import cell_minimum_ranges
 
 Array = NDArray[np.float64]
 
@@ -166,6 +167,12 @@ class LandmarkExtractorConfig(BaseModel):
     )
     max_points_per_landmark: int = Field(
         256, ge=0, description="Support points stored per landmark (even stride); 0 stores none."
+    )
+    scan_ranges: bool = Field(
+        True,
+        description="Keep the whole scan's nearest return per 1 deg cell with the support points "
+        "(LandmarkSet.scan_ranges): verification's free-space check then sees every beam, not only "
+        "the landmarks' support.",
     )
     ground: GroundConfig = Field(
         default_factory=GroundConfig, description="Ground segmentation and plane."
@@ -471,6 +478,8 @@ class LandmarkExtractor:
             )
         else:
             out = LandmarkSet.empty()
+        if cfg.scan_ranges and out.points is not None and not np.any(offset):
+            out.scan_ranges = cell_minimum_ranges(P[:, :3])
         if np.any(offset):
             T = np.eye(4)
             T[:3, 3] = offset

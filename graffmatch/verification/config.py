@@ -112,6 +112,10 @@ class VerificationConfig(BaseModel):
     free_space_neighbours: int = Field(1, ge=0, le=5, description="... cells around each cell that shadow it")
     free_space_margin: float = Field(1.0, ge=0, description="a point conflicts this far in front of the return [m] ...")
     free_space_margin_rel: float = Field(0.1, ge=0, description="... or this fraction of the return's range")
+    free_space_scan_neighbours: int = Field(
+        0, ge=0, le=5, description="... cells that shadow each cell in the whole scan's image (LandmarkSet.scan_ranges, "
+        "used when a set carries it; free_space_neighbours applies to the support points' image)",
+    )
     max_conflict: float = Field(
         0.08, ge=0, le=1,
         description="invalid when more than this share of either scan's points lies in the other's observed "

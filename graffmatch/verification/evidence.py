@@ -54,6 +54,8 @@ class SupportCloud:
     free_points: NDArray[np.float64] | None = None
     #: the sensor's pose in this frame (None: unknown, no free-space evidence)
     sensor_pose: NDArray[np.float64] | None = None
+    #: the whole scan's nearest return per cell, in the sensor's frame (``LandmarkSet.scan_ranges``)
+    scan_ranges: NDArray[np.float32] | None = None
     occupancy: NDArray[np.int64] | None = None
     occupancy_voxel: float = 0.0
     occupancy_origin: NDArray[np.float64] | None = None
@@ -77,9 +79,23 @@ class SupportCloud:
             P = self._samples[n] = np.ascontiguousarray(self.points[idx], dtype=np.float64)
         return P
 
-    def range_image(self, az_deg: float, el_deg: float, neighbours: int) -> RangeImage | None:
-        """The free-space image of this scan (built on first use), or None without its returns."""
-        if self.free_points is None or self.sensor_pose is None:
+    def range_image(self, az_deg: float, el_deg: float, neighbours: int,
+                    scan_neighbours: int = 0, use_scan_ranges: bool = True) -> RangeImage | None:
+        """The free-space image of this scan (built on first use): from the whole scan's returns
+        when the set carries them (min-filtered over ``scan_neighbours`` cells), else from the
+        support points (over ``neighbours``); None without returns or sensor pose."""
+        if self.sensor_pose is None:
+            return None
+        if self.scan_ranges is not None and use_scan_ranges:
+            key = ("scan", float(az_deg), float(el_deg), int(scan_neighbours))
+            img = self._range_images.get(key)
+            if img is None:
+                img = RangeImage.from_cell_minima(self.scan_ranges, az_deg, el_deg, scan_neighbours)
+                if img is not None:
+                    self._range_images[key] = img
+            if img is not None:
+                return img
+        if self.free_points is None:
             return None
         key = (float(az_deg), float(el_deg), int(neighbours))
         img = self._range_images.get(key)
@@ -297,15 +313,16 @@ def support_cloud(landmarks: LandmarkSet, voxel: float = 0.3, max_points: int = 
         return None
     pose = landmarks.sensor_pose
     free = None if pose is None else voxel_downsample(landmarks.points, voxel, 2 * max_points)  # type: ignore[arg-type]
-    return SupportCloud(P, free_points=free, sensor_pose=None if pose is None else pose.copy())
+    return SupportCloud(P, free_points=free, sensor_pose=None if pose is None else pose.copy(),
+                        scan_ranges=None if pose is None else landmarks.scan_ranges)
 
 
 class EvidenceCache:
     """Support clouds of recently matched landmark sets, so that a scan verified against k
     candidates (a loop detector's query, a map's keyframe) is downsampled and hashed once.
 
-    Keyed by the *identity* of the set's support arrays (``points``, ``point_offsets`` and the
-    ``is_ground`` attribute), held by weak references: an entry lives no longer than those
+    Keyed by the *identity* of the set's support arrays (``points``, ``point_offsets``, the
+    ``is_ground`` attribute and ``scan_ranges``), held by weak references: an entry lives no longer than those
     arrays, a new set (``ls[keep]``, a loaded file) never sees another's cloud, and the cache
     keeps no scan alive. A hit is also checked against copies of those arrays (a few tens of
     microseconds), so arrays changed in place are never served a stale cloud. At most
@@ -325,11 +342,11 @@ class EvidenceCache:
         if pts is None or off is None or self.max_entries <= 0:
             return support_cloud(landmarks, voxel, max_points)
         ground = landmarks.attributes.get("is_ground")
-        arrays = (pts, off, ground)
+        arrays = (pts, off, ground, landmarks.scan_ranges)
         if not all(a is None or isinstance(a, np.ndarray) for a in arrays):
             return support_cloud(landmarks, voxel, max_points)
         pose = None if landmarks.sensor_pose is None else landmarks.sensor_pose.tobytes()
-        key = (id(pts), id(off), id(ground), float(voxel), int(max_points), pose)
+        key = (id(pts), id(off), id(ground), id(landmarks.scan_ranges), float(voxel), int(max_points), pose)
         with self._lock:
             e = self._entries.get(key)
             if e is not None and all((r is None and a is None) or (r is not None and r() is a)

@@ -11,6 +11,14 @@ spherical range image around the sensor (the frame's origin) holding, per cell, 
 return of the cell and its neighbours. A point of the other scan mapped into a cell more than
 ``margin`` in front of that range conflicts.
 
+The support points are a sparse sample of the scan: whatever the extractor did not turn into a
+landmark (a trunk it missed, a parked car, a wall too small for a plane) is transparent in their
+image, and a right match puts the other scan's view of it "in free space" (right sim-downtown
+matches conflicted on up to 30 % of their points). So the extractor also stores the nearest
+return of the *whole* scan per 1 deg cell (:func:`cell_minimum_ranges`, kept in
+``LandmarkSet.scan_ranges``), and the check uses that image when a set carries it
+(:meth:`RangeImage.from_cell_minima`); the support points' image remains for sets without it.
+
 It assumes the landmarks are in their sensor's frame (one scan, origin = sensor), which is
 what the extractor produces; maps in a world frame must switch it off
 (``VerificationConfig.free_space``).
@@ -60,6 +68,27 @@ class RangeImage:
             img = minimum_filter(img, size=(size, size), mode=("wrap", "nearest"))
         return cls(img, az_deg, el_deg)
 
+    @classmethod
+    def from_cell_minima(cls, minima: NDArray, az_deg: float, el_deg: float, neighbours: int = 0
+                         ) -> RangeImage | None:
+        """The image of a whole scan's per-cell nearest returns (:func:`cell_minimum_ranges`),
+        pooled to ``az_deg`` x ``el_deg`` cells (multiples of the stored cells; None if not)
+        and min-filtered over ``neighbours`` cells."""
+        na0, ne0 = minima.shape
+        pa, pe = az_deg * na0 / 360.0, el_deg * ne0 / 180.0
+        if abs(pa - round(pa)) > 1e-9 or abs(pe - round(pe)) > 1e-9 or round(pa) < 1 or round(pe) < 1:
+            return None
+        pa, pe = int(round(pa)), int(round(pe))
+        if na0 % pa or ne0 % pe:
+            return None
+        img = np.asarray(minima, dtype=np.float64)
+        if pa > 1 or pe > 1:
+            img = img.reshape(na0 // pa, pa, ne0 // pe, pe).min(axis=(1, 3))
+        if neighbours > 0:
+            size = 2 * int(neighbours) + 1
+            img = minimum_filter(img, size=(size, size), mode=("wrap", "nearest"))
+        return cls(np.ascontiguousarray(img), az_deg, el_deg)
+
     def conflicts(self, points: NDArray[np.float64], margin: float, margin_rel: float = 0.05,
                   min_range: float = 2.0) -> tuple[int, int]:
         """(points in front of the observed range R by more than max(``margin``,
@@ -72,6 +101,34 @@ class RangeImage:
         with np.errstate(invalid="ignore"):
             bad = known & (r < R - np.maximum(margin, margin_rel * R))
         return int(bad.sum()), int(known.sum())
+
+
+def cell_minimum_ranges(points: NDArray, az_deg: float = 1.0, el_deg: float = 1.0) -> NDArray[np.float32]:
+    """Nearest horizontal range per (azimuth, elevation) cell of a whole scan in its sensor's
+    frame (inf: no return): a few tens of kB that keep every beam's evidence of free space."""
+    na, ne = int(round(360.0 / az_deg)), int(round(180.0 / el_deg))
+    P = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    img = np.full((na, ne), np.inf, dtype=np.float32)
+    _cell_minima(P, float(az_deg), float(el_deg), img)
+    return img
+
+
+@nb.njit(cache=True)
+def _cell_minima(P: NDArray[np.float64], az_deg: float, el_deg: float, img: NDArray[np.float32]) -> None:
+    """:func:`cell_minimum_ranges` in one pass over the points: the cells of :func:`_cells`
+    (non-finite points skipped), each lowered to its nearest return."""
+    na, ne = img.shape
+    to_deg = 180.0 / np.pi
+    for p in range(P.shape[0]):
+        x, y, z = P[p, 0], P[p, 1], P[p, 2]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            continue
+        r = np.hypot(x, y)
+        a = int(np.floor((np.arctan2(y, x) * to_deg + 180.0) / az_deg)) % na
+        e = int(np.floor((np.arctan2(z, r) * to_deg + 90.0) / el_deg))
+        e = min(max(e, 0), ne - 1)
+        if r < img[a, e]:
+            img[a, e] = r
 
 
 def _empty_image(points: NDArray, az_deg: float, el_deg: float) -> tuple[NDArray[np.float64], tuple | None]:

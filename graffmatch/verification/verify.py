@@ -234,8 +234,9 @@ def _check_free_space(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -
     overlap alone accepted (bench/verification.py)."""
     best = verdict.best
     src, tgt = ev.source, ev.target
-    img_s = src.range_image(cfg.free_space_az_deg, cfg.free_space_el_deg, cfg.free_space_neighbours)  # type: ignore[union-attr]
-    img_t = tgt.range_image(cfg.free_space_az_deg, cfg.free_space_el_deg, cfg.free_space_neighbours)  # type: ignore[union-attr]
+    cell = (cfg.free_space_az_deg, cfg.free_space_el_deg, cfg.free_space_neighbours, cfg.free_space_scan_neighbours)
+    img_s = src.range_image(*cell)  # type: ignore[union-attr]
+    img_t = tgt.range_image(*cell)  # type: ignore[union-attr]
     if img_s is None or img_t is None:
         return
     c_st, c_ts = conflict_fraction(src.points, tgt.points, img_s, img_t,  # type: ignore[union-attr]

@@ -66,6 +66,30 @@ def test_save_load_roundtrip_is_compact(tmp_path, rng):
     assert path.stat().st_size < 4096  # a few kB for 40 landmarks
 
 
+def test_whole_scan_ranges_travel_with_the_support_points(tmp_path, rng):
+    """``scan_ranges`` (sensor frame) is saved with the points, kept by selection and rigid
+    motion, dropped with the points and by a merge of different scans; bad shapes are refused."""
+    ls = LandmarkSet.from_arrays([1, 2], rng.normal(size=(2, 3)), rng.normal(size=(2, 3)),
+                                 points=rng.normal(size=(6, 3)), point_offsets=[0, 3, 6])
+    img = np.full((360, 180), np.inf, np.float32)
+    img[10, 90] = 12.5
+    ls.scan_ranges = img
+    back = LandmarkSet.load(ls.save(tmp_path / "s.npz", include_points=True))
+    assert np.array_equal(back.scan_ranges, img)
+    assert LandmarkSet.load(ls.save(tmp_path / "c.npz")).scan_ranges is None  # compact file: no evidence
+    assert ls[[1]].scan_ranges is img and ls.transform(random_transform(rng)).scan_ranges is img
+    assert ls.without_points().scan_ranges is None
+    assert LandmarkSet.concatenate([ls, ls[[0]]]).scan_ranges is img
+    other = LandmarkSet.from_arrays([1], rng.normal(size=(1, 3)), rng.normal(size=(1, 3)),
+                                    points=rng.normal(size=(2, 3)), point_offsets=[0, 2])
+    assert LandmarkSet.concatenate([ls, other]).scan_ranges is None
+    for bad, match in ((np.zeros((7, 180)), "dividing"), (np.full((360, 180), -1.0), ">= 0"),
+                       (np.zeros(5), "dividing")):
+        with pytest.raises(InvalidInputError, match=match):
+            LandmarkSet(ls.types, ls.bases, ls.anchors, points=ls.points, point_offsets=ls.point_offsets,
+                        scan_ranges=bad)
+
+
 def test_malformed_file(tmp_path):
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not a zip")

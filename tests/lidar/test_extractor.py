@@ -98,6 +98,26 @@ def test_support_points_capped_and_on_landmark(extracted) -> None:
         assert np.percentile(resid, 95) < tol
 
 
+def test_whole_scan_ranges_kept_with_the_support(extracted, scene) -> None:
+    """Every in-range return leaves its nearest range in its 1 deg cell (what verification's
+    free-space check reads), including the returns no landmark owns; the option turns it off."""
+    from graffmatch.verification.free_space import cell_minimum_ranges
+
+    ls = extracted[0]
+    assert ls.scan_ranges is not None and ls.scan_ranges.shape == (360, 180)
+    P = scene.points[:, :3]
+    r = np.hypot(P[:, 0], P[:, 1])
+    cfg = LandmarkExtractorConfig()
+    keep = (np.linalg.norm(P, axis=1) >= cfg.min_range) & (np.linalg.norm(P, axis=1) <= cfg.max_range)
+    want = cell_minimum_ranges(P[keep])
+    np.testing.assert_allclose(ls.scan_ranges, want, rtol=1e-6)
+    owned = np.isfinite(cell_minimum_ranges(ls.points))
+    assert np.isfinite(ls.scan_ranges).sum() > owned.sum()  # more cells than the support points reach
+    assert np.nanmin(np.where(np.isfinite(ls.scan_ranges), ls.scan_ranges, np.nan)) >= r[keep].min() - 1e-4
+    off = LandmarkExtractor(LandmarkExtractorConfig(scan_ranges=False)).extract(scene.points)
+    assert off.scan_ranges is None and len(off) == len(ls)
+
+
 def test_deterministic(scene) -> None:
     a = LandmarkExtractor().extract(scene.points)
     b = LandmarkExtractor().extract(scene.points)

@@ -116,3 +116,59 @@ def test_conflict_is_invariant_to_moving_either_frame(seed: int) -> None:
     c1 = conflict_fraction(a.points, a.points, img, img, T, 1.0, 0.05, a.sensor_pose, a.sensor_pose)
     c2 = conflict_fraction(b.points, a.points, img_b, img, T @ invert(X), 1.0, 0.05, b.sensor_pose, a.sensor_pose)
     assert abs(c1[0] - c2[0]) < 1e-9 and abs(c1[1] - c2[1]) < 1e-9
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(0, 400),
+       st.sampled_from([(1.0, 1.0, 1.0, 2.0), (2.0, 2.0, 4.0, 6.0), (1.0, 1.0, 5.0, 5.0)]), st.integers(0, 2))
+def test_whole_scan_cell_minima_equal_the_points_image(seed: int, n: int, cells: tuple, nb: int) -> None:
+    """The stored per-cell nearest returns, pooled to a coarser grid and min-filtered, give the
+    very image the points give at that grid (NaN points skipped)."""
+    from graffmatch.verification.free_space import cell_minimum_ranges
+
+    az, el, az2, el2 = cells
+    rng = np.random.default_rng(seed)
+    P = rng.normal(scale=15.0, size=(n, 3))
+    P[: n // 5, 2] = rng.choice([-1e3, 1e3], n // 5)  # the top and bottom elevation rows
+    if n > 3:
+        P[1] = [np.nan, 1.0, 0.0]
+    minima = cell_minimum_ranges(P, az, el)
+    assert minima.shape == (int(360 / az), int(180 / el)) and minima.dtype == np.float32
+    want = RangeImage.from_points(P, az2, el2, nb).ranges.astype(np.float32)
+    got = RangeImage.from_cell_minima(minima, az2, el2, nb)
+    np.testing.assert_array_equal(got.ranges.astype(np.float32), want)
+    assert RangeImage.from_cell_minima(minima, 1.5 * az, el) is None  # not a multiple: no image
+
+
+def test_an_object_without_a_landmark_still_blocks_the_beams() -> None:
+    """The target scan sees a tree trunk 10 m ahead of a wall at 20 m but makes no landmark of
+    it; the source (same place) has the trunk as a pole. The target's support points alone call
+    the trunk's points free space (the false conflict that failed right sim-downtown matches);
+    its whole-scan image knows the beams stopped at the trunk."""
+    from graffmatch.geometry.landmarks import LandmarkSet
+    from graffmatch.verification.evidence import support_cloud
+    from graffmatch.verification.free_space import cell_minimum_ranges
+
+    wall = _wall(20.0, half_width=12.0, step=0.1)
+    ang = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    z = np.arange(-1.5, 2.0, 0.1)
+    trunk = np.c_[(10.0 + 0.2 * np.cos(ang))[:, None].repeat(len(z), 1).ravel(),
+                  (0.2 * np.sin(ang))[:, None].repeat(len(z), 1).ravel(), np.tile(z, len(ang))]
+    scan = np.r_[wall, trunk]
+    n = len(wall)
+    target = LandmarkSet.from_arrays([2], [[1.0, 0, 0]], [[20.0, 0, 0]], points=wall, point_offsets=[0, n])
+    source = LandmarkSet.from_arrays([2, 1], [[1.0, 0, 0], [0, 0, 1.0]], [[20.0, 0, 0], [10.0, 0, 0]],
+                                     points=scan, point_offsets=[0, n, len(scan)])
+    s = support_cloud(source)
+    t_sparse = support_cloud(target)
+    target.scan_ranges = cell_minimum_ranges(scan)
+    t_full = support_cloud(target)
+    T = np.eye(4)
+    img_s = s.range_image(1.0, 1.0, 1)
+    sparse, _ = conflict_fraction(s.points, t_sparse.points, img_s, t_sparse.range_image(1.0, 1.0, 1), T, 1.0, 0.1)
+    full, _ = conflict_fraction(s.points, t_full.points, img_s, t_full.range_image(1.0, 1.0, 1, 0), T, 1.0, 0.1)
+    assert sparse > 0.02 and full == 0.0  # the trunk is ~3 % of the evidence points
+    shifted = np.eye(4)
+    shifted[0, 3] = -8.0  # a wrong translation: the source's wall 8 m in front of the target's
+    wrong, _ = conflict_fraction(s.points, t_full.points, img_s, t_full.range_image(1.0, 1.0, 1, 0), shifted, 1.0, 0.1)
+    assert wrong > 0.8
