@@ -271,8 +271,9 @@ def _verified_result(source, target, graph, sol, cfg: GraffMatchConfig, timings,
                   weights=np.ones(best.n_associations))
     common["info"].update(origin=best.origin, rival_ratio=verdict.rival_ratio,
                           score_parts=best.score_parts, clipper_selected=len(sol.selected))
-    if "free_space_conflict" in best.info:
-        common["info"]["free_space_conflict"] = best.info["free_space_conflict"]
+    for key in ("free_space_conflict", "free_space_image"):
+        if key in best.info:
+            common["info"][key] = best.info[key]
     if "slide_ratio" in best.info:
         common["info"]["slide_ratio"] = best.info["slide_ratio"]
     valid = not problems

@@ -6,7 +6,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 #: lines-only (min_overlap, max_rival_ratio, max_conflict, max_slide_ratio): chosen on the lines-only
 #: calibration split of bench/verification.py (de-skewed drives, bench/results/verification.json)
-LINES_ONLY = (0.2, 0.875, 0.32, 0.85)
+LINES_ONLY = (0.125, 0.825, 0.18, 0.8)
 
 
 class DecisionThresholds(BaseModel):
@@ -94,7 +94,7 @@ class VerificationConfig(BaseModel):
     landmark_m: float = Field(0.4, gt=0, description="landmark-level evidence: offset tolerance [m]")
     # decision
     min_overlap: float = Field(
-        0.2, ge=0, le=1,
+        0.1875, ge=0, le=1,
         description="the best hypothesis must explain at least this share (chosen on the calibration split)",
     )
     max_rival_ratio: float = Field(
@@ -106,20 +106,25 @@ class VerificationConfig(BaseModel):
         description="reject hypotheses that put one scan's points where the other's beams saw through "
         "(needs landmarks in their sensor's frame, as the extractor gives; False for maps in a world frame)",
     )
-    # the range image below was chosen among 16 variants on the calibration split (bench/verification.py)
+    # the range image below was chosen among 24 variants on the calibration split (bench/verification.py)
     free_space_az_deg: float = Field(1.0, gt=0, le=30, description="free-space range image: azimuth cell [deg]")
     free_space_el_deg: float = Field(1.0, gt=0, le=30, description="... elevation cell [deg]")
     free_space_neighbours: int = Field(1, ge=0, le=5, description="... cells around each cell that shadow it")
     free_space_margin: float = Field(1.0, ge=0, description="a point conflicts this far in front of the return [m] ...")
-    free_space_margin_rel: float = Field(0.1, ge=0, description="... or this fraction of the return's range")
+    free_space_margin_rel: float = Field(0.05, ge=0, description="... or this fraction of the return's range")
     free_space_scan_neighbours: int = Field(
         0, ge=0, le=5, description="... cells that shadow each cell in the whole scan's image (LandmarkSet.scan_ranges, "
         "used when a set carries it; free_space_neighbours applies to the support points' image)",
     )
     max_conflict: float = Field(
-        0.08, ge=0, le=1,
+        0.14, ge=0, le=1,
         description="invalid when more than this share of either scan's points lies in the other's observed "
         "free space (chosen on the calibration split of bench/verification.py)",
+    )
+    max_conflict_support_points: float = Field(
+        0.085, ge=0, le=1,
+        description="... in place of max_conflict when either image comes from support points (a set without scan_ranges: "
+        "a sparser image, more false conflicts; chosen apart on the calibration split of bench/verification.py)",
     )
     max_slide_ratio: float | None = Field(
         None, gt=0,
@@ -141,7 +146,7 @@ class VerificationConfig(BaseModel):
         "on fuzz seed 1 of bench/fuzz_validity.py, reported on seed 0)",
     )
     confidence_coef: tuple[float, float, float, float] = Field(
-        (-5.934, 26.69, 2.809, -23.592),
+        (-5.589, 37.347, 1.701, -34.309),
         description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio) + c3 * conflict), "
         "fitted on the calibration split of bench/verification.py (conflict 0 without support points)",
     )

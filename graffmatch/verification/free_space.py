@@ -45,6 +45,8 @@ class RangeImage:
     ranges: NDArray[np.float64]
     az_deg: float
     el_deg: float
+    #: built from a whole scan's returns (:meth:`from_cell_minima`), not from support points
+    whole_scan: bool = False
 
     @classmethod
     def from_points(cls, points: NDArray, az_deg: float = 1.0, el_deg: float = 1.0,
@@ -87,7 +89,7 @@ class RangeImage:
         if neighbours > 0:
             size = 2 * int(neighbours) + 1
             img = minimum_filter(img, size=(size, size), mode=("wrap", "nearest"))
-        return cls(np.ascontiguousarray(img), az_deg, el_deg)
+        return cls(np.ascontiguousarray(img), az_deg, el_deg, whole_scan=True)
 
     def conflicts(self, points: NDArray[np.float64], margin: float, margin_rel: float = 0.05,
                   min_range: float = 2.0) -> tuple[int, int]:

@@ -244,14 +244,17 @@ def _check_free_space(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -
                                    src.sensor_pose, tgt.sensor_pose)  # type: ignore[union-attr]
     conflict = max(c_st, c_ts)
     best.info["free_space_conflict"] = (c_st, c_ts)
+    whole = img_s.whole_scan and img_t.whole_scan
+    best.info["free_space_image"] = "whole scans" if whole else "support points"
     if not best.degenerate:
         verdict.confidence = confidence_of(best.score, verdict.rival_ratio, cfg, conflict)
-    if conflict > cfg.max_conflict:
+    limit = cfg.max_conflict if whole else min(cfg.max_conflict, cfg.max_conflict_support_points)
+    if conflict > limit:
         which, other = ("source", "target") if c_st >= c_ts else ("target", "source")
         verdict.valid = False
         verdict.problems.append(
             f"free-space conflict: {conflict:.0%} of the {which}'s points lie where the {other} "
-            f"saw through (> {cfg.max_conflict:.0%})"
+            f"saw through (> {limit:.0%})"
         )
 
 
