@@ -75,22 +75,23 @@ def _register(
     cands = [c for c in cands if len(c.vertices) >= 2]
     if not cands:
         return []
-    lengths = np.array([len(c.vertices) for c in cands], dtype=np.int64)
+    verts = [c.vertices for c in cands]
+    lengths = np.fromiter(map(len, verts), np.int64, len(verts))
     groups = np.repeat(np.arange(len(cands)), lengths)
-    A = assoc[np.concatenate([c.vertices for c in cands])]
+    A = assoc[np.concatenate(verts)]
     try:
         b = register_batch(source, target, A, groups, None, kappa_max, len(cands))
     except DegenerateGeometryError:
         return []
     bounds = np.r_[0, np.cumsum(lengths)].tolist()
-    objectives = clique_objectives(W, [c.vertices for c in cands]).tolist()
+    objectives = clique_objectives(W, verts).tolist()
     kappa, degenerate = b.kappa.tolist(), b.degenerate.tolist()
+    Ts, off, ang = list(b.T_target_source), b.offset_residuals, b.angle_residuals_deg
     hyps = []
     for i, c in enumerate(cands):  # per-hypothesis arrays are views of the batch's
         lo, hi = bounds[i], bounds[i + 1]
-        h = Hypothesis(b.T_target_source[i], A[lo:hi], c.origin, objectives[i], kappa[i], degenerate[i])
-        h.info["vertices"] = c.vertices
-        h.info["residuals"] = (b.offset_residuals[lo:hi], b.angle_residuals_deg[lo:hi])
+        h = Hypothesis(Ts[i], A[lo:hi], c.origin, objectives[i], kappa[i], degenerate[i],
+                       info={"vertices": c.vertices, "residuals": (off[lo:hi], ang[lo:hi])})
         if c.T_target_source is not None:  # the pole pair's own transform, first (it wins the
             # merge of equal cliques): with a wrong but consistent association in the clique, the
             # clique's least squares can land degrees and metres off where the pair itself was
@@ -298,15 +299,15 @@ def score_hypotheses(
     if not ev.has_points:
         counts: list = []
         parts = landmark_overlap(source, target, Ts, cfg.landmark_deg, cfg.landmark_m, counts)
-        for h, c in zip(hyps, counts[0], strict=True):
-            h.info["landmarks_explained"] = int(c)
+        for h, c in zip(hyps, counts[0].tolist(), strict=True):
+            h.info["landmarks_explained"] = c
     elif exact:
         parts = point_overlaps(ev.source, ev.target, Ts, cfg.inlier_m)  # type: ignore[arg-type]
     else:
         parts = occupancy_overlap(ev.source, ev.target, Ts, cfg.inlier_m)  # type: ignore[arg-type]
-    for h, p in zip(hyps, parts, strict=True):
-        h.score_parts = (float(p[0]), float(p[1]))
-        h.score = 0.5 * (h.score_parts[0] + h.score_parts[1])
+    for h, (p0, p1) in zip(hyps, parts.tolist(), strict=True):
+        h.score_parts = (p0, p1)
+        h.score = 0.5 * (p0 + p1)
 
 
 def verify_graph(
