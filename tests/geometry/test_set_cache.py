@@ -63,3 +63,23 @@ def test_landmark_overlap_with_cache_equals_without():
         np.testing.assert_array_equal(c1[0], c2[0])
         np.testing.assert_allclose(first, ref, atol=1e-12)
         np.testing.assert_array_equal(c1[0], c3[0])
+
+
+def test_match_with_warm_caches_equals_cold():
+    """A scan matched against several candidates (the loop detector's warm path) gets what a
+    fresh process gets: transforms bit for bit, the same decision, overlap and confidence."""
+    m = GraffMatcher()
+    pairs = [make_scene_pair(n_poles=6 + s % 4, n_planes=10 + s % 5, seed=s) for s in range(8)]
+    cold = []
+    for p in pairs:
+        derived_cache.clear()
+        E.evidence_cache.clear()
+        cold.append(m.match(p.source, p.target))
+    for p, c in zip(pairs, cold, strict=True):
+        for _ in range(2):  # second and third call: every per-set value from the caches
+            w = m.match(p.source, p.target)
+            assert (w.T_target_source is None) == (c.T_target_source is None)
+            if c.T_target_source is not None:
+                np.testing.assert_array_equal(w.T_target_source, c.T_target_source)
+            assert (w.valid, w.overlap, w.confidence, w.message) == (c.valid, c.overlap, c.confidence, c.message)
+    assert derived_cache.hits > 0
