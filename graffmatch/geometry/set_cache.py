@@ -5,7 +5,8 @@ same two sets many times (intra-scan distances, ground-free landmark arrays, ext
 that depends on a set alone is a pure function of a few of its arrays, so it can be kept next
 to copies of those arrays: a later call with the same arrays (same identities, equal contents)
 gets the stored value, anything else (a new set, arrays edited in place, a reused id) recomputes
-it. Entries hold copies, never the set, so no scan is kept alive; at most ``max_entries``.
+it. Entries hold copies, never the set, so no scan is kept alive; at most ``max_entries``
+entries and ``max_bytes`` of arrays (a W3-size set's distance matrix is ~1 MB).
 """
 
 from __future__ import annotations
@@ -23,10 +24,12 @@ class DerivedCache:
     arrays they derive from; a hit is checked against copies of those arrays (``np.array_equal``,
     a few microseconds), so a stale value is never served."""
 
-    def __init__(self, max_entries: int = 256) -> None:
+    def __init__(self, max_entries: int = 256, max_bytes: int = 64 << 20) -> None:
         self.max_entries = max_entries
+        self.max_bytes = max_bytes
         self._lock = threading.Lock()
-        self._entries: OrderedDict[tuple, tuple[tuple, Any]] = OrderedDict()
+        self._entries: OrderedDict[tuple, tuple[tuple, Any, int]] = OrderedDict()
+        self._bytes = 0
         self.hits = 0
         self.misses = 0
 
@@ -48,20 +51,40 @@ class DerivedCache:
             return e[1]
         value = make()
         copies = tuple(None if a is None else np.array(a, copy=True) for a in arrays)
+        size = sum(c.nbytes for c in copies if c is not None) + _nbytes(value)
         with self._lock:
             self.misses += 1
-            self._entries[key] = (copies, value)
-            self._entries.move_to_end(key)
-            while len(self._entries) > self.max_entries:
-                self._entries.popitem(last=False)
+            old = self._entries.pop(key, None)
+            if old is not None:
+                self._bytes -= old[2]
+            self._entries[key] = (copies, value, size)
+            self._bytes += size
+            while self._entries and (len(self._entries) > self.max_entries or self._bytes > self.max_bytes):
+                self._bytes -= self._entries.popitem(last=False)[1][2]
         return value
 
     def clear(self) -> None:
         with self._lock:
             self._entries.clear()
+            self._bytes = 0
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of arrays held (copies and values)."""
+        return self._bytes
 
     def __len__(self) -> int:
         return len(self._entries)
+
+
+def _nbytes(value: Any) -> int:
+    """Bytes of the arrays in a cached value (an array, or an object with array attributes)."""
+    if isinstance(value, np.ndarray):
+        return value.nbytes
+    fields = getattr(value, "__dict__", None)
+    if fields is None:
+        return 0
+    return sum(v.nbytes for v in fields.values() if isinstance(v, np.ndarray))
 
 
 derived_cache = DerivedCache()

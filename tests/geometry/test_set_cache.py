@@ -35,6 +35,17 @@ def test_value_is_kept_for_the_same_arrays_and_recomputed_otherwise():
     assert len(cache) == 0
 
 
+def test_byte_budget_drops_the_least_recently_used():
+    cache = DerivedCache(max_entries=100, max_bytes=3 * 8000 + 100)
+    arrays = [np.full(500, float(i)) for i in range(4)]  # 4 kB each, value 4 kB: 8 kB an entry
+    for a in arrays:
+        cache.get("z", (a,), lambda a=a: a * 2)
+    assert len(cache) == 3 and cache.nbytes <= cache.max_bytes
+    calls = []
+    cache.get("z", (arrays[0],), lambda: calls.append(1) or arrays[0] * 2)  # the oldest was dropped
+    assert calls == [1]
+
+
 def test_matcher_distances_are_cached_read_only_and_exact():
     pair = make_scene_pair(n_poles=8, n_planes=12, seed=3)
     m = GraffMatcher()
