@@ -33,7 +33,7 @@ from graffmatch.geometry.transforms import check_transform
 
 Array = NDArray[np.float64]
 
-FILE_FORMAT_VERSION = 1
+FILE_FORMAT_VERSION = 2
 ORTHONORMAL_ATOL = 1e-6
 
 
@@ -668,24 +668,23 @@ class LandmarkSet:
 
     # ---- persistence ------------------------------------------------------------------
     def to_bytes(self, include_points: bool = False) -> bytes:
-        """Compact npz: directions as float32 unit vectors would lose too much; we keep
-        float64 bases/anchors and float32 attributes."""
+        """Compact npz that loads back *bit for bit* (version 2): float64 bases, anchors and
+        attributes. Version 1 stored float32 attributes and re-derived a plane's second basis
+        column from its normal, so a loaded set differed from the extracted one in the last
+        digits, and the matcher's decisions on it could differ (a gate on a rounded extent)."""
         arrays: dict[str, np.ndarray] = {
             "types": self.types,
-            "directions": self.directions,
+            "bases": self.bases,
             "anchors": self.anchors,
         }
-        # Line bases are the direction; plane bases are re-derived exactly from the stored
-        # tangent so that loading reproduces the same basis (not only the same subspace).
-        arrays["tangents"] = self.bases[:, :, 0]
         for k, v in self.attributes.items():
-            arrays[f"attr.{k}"] = v.astype(np.float32) if v.dtype.kind == "f" else v
+            arrays[f"attr.{k}"] = v
         if include_points and self.points is not None:
             arrays["points"] = self.points
             arrays["point_offsets"] = self.point_offsets  # type: ignore[assignment]
             if self.scan_ranges is not None:
                 arrays["scan_ranges"] = self.scan_ranges
-        meta: dict = {"format": "graffmatch-landmarks", "version": 1}
+        meta: dict = {"format": "graffmatch-landmarks", "version": FILE_FORMAT_VERSION}
         if self.sensor_pose is None:
             meta["sensor_pose"] = None
         elif not np.array_equal(self.sensor_pose, np.eye(4)):  # the default (a scan's own frame) costs no bytes
@@ -712,8 +711,9 @@ class LandmarkSet:
                 if int(meta.get("version", 0)) > FILE_FORMAT_VERSION:
                     raise MalformedFileError(f"{path}: landmark file version too new")
                 types = z["types"]
-                normals = z["directions"]
-                tangents = z["tangents"]
+                stored_bases = z["bases"] if "bases" in z.files else None
+                normals = z["directions"] if stored_bases is None else None
+                tangents = z["tangents"] if stored_bases is None else None
                 anchors = z["anchors"]
                 attrs = {k[5:]: z[k] for k in z.files if k.startswith("attr.")}
                 pts = z["points"] if "points" in z.files else None
@@ -729,12 +729,15 @@ class LandmarkSet:
         try:
             types = coerce_types(types)
             n = len(types)
-            normals = np.asarray(normals, dtype=np.float64).reshape(n, 3)
-            tangents = np.asarray(tangents, dtype=np.float64).reshape(n, 3)
-            bases = np.zeros((n, 3, 2))
-            bases[:, :, 0] = tangents
-            planes = types == LandmarkType.PLANE
-            bases[planes, :, 1] = np.cross(normals[planes], tangents[planes])
+            if stored_bases is not None:
+                bases = np.asarray(stored_bases, dtype=np.float64).reshape(n, 3, 2)
+            else:  # version 1: the tangent and the normal
+                normals = np.asarray(normals, dtype=np.float64).reshape(n, 3)
+                tangents = np.asarray(tangents, dtype=np.float64).reshape(n, 3)
+                bases = np.zeros((n, 3, 2))
+                bases[:, :, 0] = tangents
+                planes = types == LandmarkType.PLANE
+                bases[planes, :, 1] = np.cross(normals[planes], tangents[planes])
             attrs = {
                 k: (v.astype(np.float64) if v.dtype.kind == "f" else v) for k, v in attrs.items()
             }

@@ -48,8 +48,9 @@ MAX_COORDINATE = 1e7
 
 #: Version of the extraction code's output; part of :meth:`LandmarkExtractorConfig.config_hash`,
 #: so cached landmark files of an older front end are recomputed. 2: the voxel plane detector
-#: and compiled ground / pole / crop kernels (issue 14).
-EXTRACTION_VERSION = 2
+#: and compiled ground / pole / crop kernels (issue 14). 3: the whole scan's range image, and
+#: landmark files that load back bit for bit (format 2), so a cached set equals an extracted one.
+EXTRACTION_VERSION = 3
 
 #: Plausible span of one scan in metres, used to say which unit an oversized cloud is in.
 PLAUSIBLE_SPAN = (10.0, 400.0)

@@ -66,6 +66,31 @@ def test_save_load_roundtrip_is_compact(tmp_path, rng):
     assert path.stat().st_size < 4096  # a few kB for 40 landmarks
 
 
+def test_a_saved_set_loads_back_bit_for_bit(tmp_path, rng):
+    """Version 2 files: bases, anchors and attributes come back exactly (a version 1 file
+    rounded attributes to float32 and re-derived plane bases, so matching a loaded set could
+    decide differently from matching the extracted one); version 1 files still load."""
+    n = 30
+    types = rng.integers(1, 3, n)
+    ls = LandmarkSet.from_arrays(types, rng.normal(size=(n, 3)), rng.uniform(-30, 30, (n, 3)),
+                                 {"extent": rng.uniform(0.1, 40, n), "radius": np.where(types == 1, 0.13, np.nan)})
+    back = LandmarkSet.load(ls.save(tmp_path / "v2.npz"))
+    assert np.array_equal(back.bases, ls.bases) and np.array_equal(back.anchors, ls.anchors)
+    for k, v in ls.attributes.items():
+        assert np.array_equal(back.attributes[k], v, equal_nan=True), k
+    import io
+    import json
+
+    v1 = {"types": ls.types, "directions": ls.directions, "anchors": ls.anchors, "tangents": ls.bases[:, :, 0],
+          "meta": np.array(json.dumps({"format": "graffmatch-landmarks", "version": 1}))}
+    v1.update({f"attr.{k}": v.astype(np.float32) for k, v in ls.attributes.items()})
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **v1)
+    (tmp_path / "v1.npz").write_bytes(buf.getvalue())
+    old = LandmarkSet.load(tmp_path / "v1.npz")
+    assert old.approx_equal(ls, atol=1e-12) and np.allclose(old.bases, ls.bases, atol=1e-12)
+
+
 def test_whole_scan_ranges_travel_with_the_support_points(tmp_path, rng):
     """``scan_ranges`` (sensor frame) is saved with the points, kept by selection and rigid
     motion, dropped with the points and by a merge of different scans; bad shapes are refused."""
