@@ -20,7 +20,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import numpy as np
-from verification import load_sources, make_pairs
+from verification import lines_sources, load_sources, make_pairs
 
 from graffmatch.evaluation.places import ground_truth_matches
 from graffmatch.geometry.landmarks import LandmarkType
@@ -95,10 +95,14 @@ def main() -> None:
     ap.add_argument("--suite", action="append", default=None, help="sim-downtown (default) and/or sim-suburban")
     ap.add_argument("--split", default="test")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--one-layer", action="store_true",
+                    help="the full matcher's landmarks (one-layer pole detector) instead of the pole-only front end")
     a = ap.parse_args()
     t0 = time.perf_counter()
-    src = load_sources(Path(a.out), 120)
+    src = load_sources(Path(a.out), True)
     pairs = make_pairs(src, 120, 180)
+    if not a.one_layer:  # the landmarks the lines-only pass of bench/verification.py matches
+        src = lines_sources(Path(a.out))
     report = {"split": a.split, "suites": {}}
     for suite in a.suite or ["sim-downtown"]:
         rows = diagnose(src, pairs, suite, a.split)

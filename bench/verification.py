@@ -24,7 +24,9 @@ transform); any threshold's outcome is then computed offline. A result is *corre
 conflict) and the free-space range image (cell size, neighbourhood, margin; recomputed offline
 from each pair's transform): the largest recall on the calibration split with precision
 >= 99.5 % and at most 0.5 % valid-and-wrong negatives; the confidence is a logistic fit on the
-calibration split. Prints the tables and writes JSON (``--json``).
+calibration split. The lines-only pass (GraffMatch-lines, poles only) runs on the simulated drives
+extracted with the pole-only front end (``poles.LAYERED_POLES``, cached apart). Prints the tables
+and writes JSON (``--json``).
 
     python bench/verification.py --out /tmp/gm-verify --raw-drives --json bench/results/verification.json
 """
@@ -47,6 +49,7 @@ from graffmatch.evaluation.suites import SIM_EXTRACTORS, shared_data_root, suite
 from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.geometry.transforms import invert, transform_errors
 from graffmatch.lidar.extractor import LandmarkExtractor, LandmarkExtractorConfig
+from graffmatch.lidar.poles import LAYERED_POLES
 from graffmatch.matcher import GraffMatchConfig, GraffMatcher
 from graffmatch.verification.config import VerificationConfig
 
@@ -74,30 +77,47 @@ def extract_all(ds, cfg: LandmarkExtractorConfig, cache: Path, name: str) -> lis
     return out
 
 
-def load_sources(out: Path, sims: bool, raw_drives: bool = False) -> dict[str, dict]:
+def with_poles(cfg: LandmarkExtractorConfig, poles: dict | None) -> LandmarkExtractorConfig:
+    """``cfg`` with its pole settings overridden (``--poles``: front-end experiments)."""
+    if not poles:
+        return cfg
+    d = cfg.model_dump()
+    d["poles"] = {**d["poles"], **poles}
+    return LandmarkExtractorConfig.model_validate(d)
+
+
+def load_sources(out: Path, sims: bool, raw_drives: bool = False, poles: dict | None = None) -> dict[str, dict]:
     root = shared_data_root()
     src: dict[str, dict] = {}
     court = KittiFolder(root / "balm_courtyard")
     src["courtyard"] = {
-        "lms": extract_all(court, suite_config("balm_courtyard").extractor, out / "cache", "courtyard"),
+        "lms": extract_all(court, with_poles(suite_config("balm_courtyard").extractor, poles), out / "cache",
+                           "courtyard"),
         "poses": court.poses,
     }
     kitti = KittiFolder(root / "kitti00_first6")
-    src["kitti"] = {"lms": extract_all(kitti, LandmarkExtractorConfig(), out / "cache", "kitti"),
+    src["kitti"] = {"lms": extract_all(kitti, with_poles(LandmarkExtractorConfig(), poles), out / "cache", "kitti"),
                     "poses": kitti.poses}
     if sims:
-        from graffmatch.evaluation.suites import SUITES
-        from graffmatch.loops.posegraph import OdometryDriftConfig, drifted_odometry
+        src.update(load_sims(out, raw_drives, poles))
+    return src
 
-        for k, name in enumerate(("sim-downtown", "sim-suburban", "sim-openroad")):  # the report's drives
-            ds = SUITES[name].make_dataset(out / f"suite-{name}", False, None)
-            cfg = LandmarkExtractorConfig.model_validate(SIM_EXTRACTORS.get(name, {}))
-            # raw (motion-distorted) scans, de-skewed with a drifting odometry as a user's drive is
-            odometry = drifted_odometry(ds.poses, OdometryDriftConfig(seed=k))
-            src[name] = {"lms": extract_all(Deskewed(ds, odometry), cfg, out / "cache", f"{name}-deskew"),
-                         "poses": ds.poses}
-            if raw_drives:
-                src[f"{name} raw"] = {"lms": extract_all(ds, cfg, out / "cache", name), "poses": ds.poses}
+
+def load_sims(out: Path, raw_drives: bool = False, poles: dict | None = None) -> dict[str, dict]:
+    """The simulated drives' landmarks (de-skewed; raw too with ``raw_drives``)."""
+    from graffmatch.evaluation.suites import SUITES
+    from graffmatch.loops.posegraph import OdometryDriftConfig, drifted_odometry
+
+    src: dict[str, dict] = {}
+    for k, name in enumerate(("sim-downtown", "sim-suburban", "sim-openroad")):  # the report's drives
+        ds = SUITES[name].make_dataset(out / f"suite-{name}", False, None)
+        cfg = with_poles(LandmarkExtractorConfig.model_validate(SIM_EXTRACTORS.get(name, {})), poles)
+        # raw (motion-distorted) scans, de-skewed with a drifting odometry as a user's drive is
+        odometry = drifted_odometry(ds.poses, OdometryDriftConfig(seed=k))
+        src[name] = {"lms": extract_all(Deskewed(ds, odometry), cfg, out / "cache", f"{name}-deskew"),
+                     "poses": ds.poses}
+        if raw_drives:
+            src[f"{name} raw"] = {"lms": extract_all(ds, cfg, out / "cache", name), "poses": ds.poses}
     return src
 
 
@@ -371,7 +391,8 @@ def lines_only(src: dict, pairs: list[dict], variant: tuple) -> tuple[dict, list
     """GraffMatch-lines (poles only) with its own thresholds: every simulated pair of both splits
     (positives and the simulated negatives) matched once with the decision open, the thresholds
     chosen on the calibration split (precision >= 99.5 % on every suite, no valid-and-wrong
-    negative), reported on the test split."""
+    negative), reported on the test split. ``src``: the drives extracted with the pole-only
+    front end (:func:`lines_sources`)."""
     sel = [p for p in pairs if p["ds"].startswith("sim") and p["ds2"].startswith("sim")]
     cfg = GraffMatchConfig(landmark_types=["line"], verification=VerificationConfig(
         min_overlap=0.0, max_rival_ratio=1.0, max_conflict=1.0, max_conflict_support_points=1.0,
@@ -380,6 +401,12 @@ def lines_only(src: dict, pairs: list[dict], variant: tuple) -> tuple[dict, list
     for r, c in zip(rows, free_space_conflicts(src, rows, variant), strict=True):
         r["conflict"] = float(c)
     return lines_only_report(rows), rows
+
+
+def lines_sources(out: Path, poles: dict | None = None) -> dict[str, dict]:
+    """The simulated drives with the pole-only front end (``LAYERED_POLES``: the geometric poles
+    clustered per height layer, so trunks under crowns count), for the lines-only pass."""
+    return load_sims(out, False, {**LAYERED_POLES, **(poles or {})})
 
 
 def lines_only_report(rows: list[dict]) -> dict:
@@ -425,12 +452,15 @@ def main() -> None:
     ap.add_argument("--raw-drives", action="store_true",
                     help="also report the simulated drives' test pairs on their raw (not de-skewed) scans")
     ap.add_argument("--json", default=None)
+    ap.add_argument("--poles", default=None,
+                    help="JSON overrides of every extractor's pole settings (front-end experiments)")
     ap.add_argument("--lines-only", action="store_true",
                     help="only the lines-only pass (rows to OUT/lines_only_rows.json; --json is not written)")
     a = ap.parse_args()
     out = Path(a.out)
     t0 = time.perf_counter()
-    src = load_sources(out, not a.no_sim, a.raw_drives)
+    poles = json.loads(a.poles) if a.poles else None
+    src = load_sources(out, not a.no_sim, a.raw_drives, poles)
     print(f"landmarks ready in {time.perf_counter() - t0:.0f} s: "
           + ", ".join(f"{k} {len(v['lms'])}" for k, v in src.items()), flush=True)
     pairs = make_pairs(src, a.max_per, a.cross_per)
@@ -438,7 +468,7 @@ def main() -> None:
         base = VerificationConfig()
         variant = (base.free_space_az_deg, base.free_space_el_deg, base.free_space_neighbours,
                    base.free_space_margin, base.free_space_margin_rel, base.free_space_scan_neighbours)
-        _, lines_rows = lines_only(src, pairs, variant)
+        _, lines_rows = lines_only(lines_sources(out, poles), pairs, variant)
         (out / "lines_only_rows.json").write_text(json.dumps(lines_rows, default=float))
         print(f"wrote {out / 'lines_only_rows.json'}")
         return
@@ -519,7 +549,7 @@ def main() -> None:
     if a.json:  # the full matcher's rows first: the lines-only pass below takes a while
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
         Path(a.json).write_text(json.dumps({**report, "rows": rows}, indent=1, default=float))
-    lines, lines_rows = lines_only(src, pairs, chosen["variant"])
+    lines, lines_rows = lines_only(lines_sources(out, poles), pairs, chosen["variant"])
     report["lines_only_thresholds"] = lines["thresholds"]
     report["lines_only_calibration"] = lines["calibration"]
     report["lines_only_test"] = lines["test"]
