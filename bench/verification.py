@@ -57,10 +57,10 @@ ROT_OK, TRANS_OK = 5.0, 1.0
 
 
 def extract_all(ds, cfg: LandmarkExtractorConfig, cache: Path, name: str) -> list[LandmarkSet]:
-    """Landmarks of every scan, cached per (dataset, extractor config, scan file) state."""
+    """Landmarks of every scan, cached per (dataset, extractor config and code version, scan file) state."""
     import hashlib
 
-    key = hashlib.sha1((cfg.model_dump_json() + str(ds.scan_path(0).stat().st_mtime_ns)).encode()).hexdigest()[:10]
+    key = hashlib.sha1((cfg.config_hash() + str(ds.scan_path(0).stat().st_mtime_ns)).encode()).hexdigest()[:10]
     cache = cache / f"{name}-{key}"
     cache.mkdir(parents=True, exist_ok=True)
     ex = LandmarkExtractor(cfg)
