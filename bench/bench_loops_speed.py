@@ -76,7 +76,8 @@ def main() -> None:
             continue
         base = benchmark_config()
         db = LandmarkDatabase()
-        src = COURTYARD if drive == "balm_courtyard" else args.data / drive
+        # a de-skewed drive (bench_loops.py --deskew: "<name>+deskew") has its raw drive's times
+        src = COURTYARD if drive == "balm_courtyard" else args.data / drive.removesuffix("+deskew")
         stamps = np.asarray(open_dataset("folder", src).timestamps, float)
         for i, f in enumerate(files):
             ls = load_landmarks(f)
