@@ -148,7 +148,7 @@ class VerificationConfig(BaseModel):
         "on fuzz seed 1 of bench/fuzz_validity.py, reported on seed 0)",
     )
     confidence_coef: tuple[float, float, float, float] = Field(
-        (-5.589, 37.347, 1.701, -34.309),
+        (-5.589, 37.354, 1.699, -34.309),
         description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio) + c3 * conflict), "
         "fitted on the calibration split of bench/verification.py (conflict 0 without support points)",
     )
