@@ -184,12 +184,7 @@ def poles_semantic(points: Array, semantic: NDArray[np.integer], cfg: PoleConfig
         pc.cluster_dbscan(eps=cfg.dbscan_eps, min_points=cfg.dbscan_min_points), dtype=np.int64
     )
     k = int(lab.max(initial=-1)) + 1
-    res = _fit_and_filter(points[cand], lab, k, cfg)
-    full = np.full(n, -1, dtype=np.int64)
-    full[cand] = res.labels
-    return PoleResult(
-        res.anchors, res.directions, res.extent, res.radius, res.support, res.rms, full
-    )
+    return _fit_candidates(points, cand, lab, k, cfg)
 
 
 def poles_geometric(
@@ -204,8 +199,15 @@ def poles_geometric(
     idx, lab, k = pole_candidates(P, height, is_ground, cfg)
     if k == 0:
         return _empty(n)
-    res = _fit_and_filter(P[idx], lab, k, cfg)
-    full = np.full(n, -1, dtype=np.int64)
+    return _fit_candidates(P, idx, lab, k, cfg)
+
+
+def _fit_candidates(points: Array, idx: NDArray[np.int64], lab: NDArray[np.int64], k: int,
+                    cfg: PoleConfig) -> PoleResult:
+    """Fit and filter the ``k`` candidate clusters of ``points[idx]`` (either mode), with the
+    pole labels scattered back to every point of the scan (-1: no pole)."""
+    res = _fit_and_filter(points[idx], lab, k, cfg)
+    full = np.full(points.shape[0], -1, dtype=np.int64)
     full[idx] = res.labels
     return PoleResult(
         res.anchors, res.directions, res.extent, res.radius, res.support, res.rms, full
