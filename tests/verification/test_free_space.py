@@ -172,3 +172,18 @@ def test_an_object_without_a_landmark_still_blocks_the_beams() -> None:
     shifted[0, 3] = -8.0  # a wrong translation: the source's wall 8 m in front of the target's
     wrong, _ = conflict_fraction(s.points, t_full.points, img_s, t_full.range_image(1.0, 1.0, 1, 0), shifted, 1.0, 0.1)
     assert wrong > 0.8
+
+
+def test_whole_scan_cell_minima_at_the_poles_origin_and_far_out() -> None:
+    """The compiled binning (elevation by boundary tangents) agrees with the angle formula where
+    it has no ratio: straight up and down, the sensor's own position, overflowing squares."""
+    import warnings
+
+    from graffmatch.verification.free_space import cell_minimum_ranges
+
+    P = np.array([[1e200, 1e200, 5.0], [3e300, -2e300, 1e300], [0.0, 0.0, 0.0], [0.0, 0.0, 5.0],
+                  [0.0, 0.0, -5.0], [np.nan, 1.0, 1.0], [10.0, 0.0, 10.0 * np.tan(np.radians(-12.0))]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # float32 of 1e200 ranges: inf, in both
+        want = RangeImage._from_points_reference(P, 1.0, 1.0, 0).ranges.astype(np.float32)
+    np.testing.assert_array_equal(cell_minimum_ranges(P), want)
