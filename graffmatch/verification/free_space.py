@@ -111,20 +111,24 @@ def cell_minimum_ranges(points: NDArray, az_deg: float = 1.0, el_deg: float = 1.
     na, ne = int(round(360.0 / az_deg)), int(round(180.0 / el_deg))
     P = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
     img = np.full((na, ne), np.inf, dtype=np.float32)
-    # elevation cell e holds the angles in [-90 + e el, -90 + (e+1) el): counting the boundaries a
-    # point lies on or above (z >= r tan b) bins it as floor((elevation + 90) / el) without an atan2
+    # the azimuth cells as _cells computes them (numpy's vectorised arctan2 beats a compiled
+    # scalar one); elevation cell e holds the angles in [-90 + e el, -90 + (e+1) el): counting
+    # the boundaries a point lies on or above (z >= r tan b) needs no arctan2
+    with np.errstate(invalid="ignore"):
+        a = np.floor((np.degrees(np.arctan2(P[:, 1], P[:, 0])) + 180.0) / az_deg)
+    a = np.where(np.isfinite(a), a, 0.0).astype(np.int64) % na
     tan_edges = np.tan(np.radians(-90.0 + np.arange(1, ne) * el_deg))
-    _cell_minima(P, float(az_deg), float(el_deg), tan_edges, img)
+    _cell_minima(P, a, float(el_deg), tan_edges, img)
     return img
 
 
 @nb.njit(cache=True)
-def _cell_minima(P: NDArray[np.float64], az_deg: float, el_deg: float, tan_edges: NDArray[np.float64],
+def _cell_minima(P: NDArray[np.float64], a: NDArray[np.int64], el_deg: float, tan_edges: NDArray[np.float64],
                  img: NDArray[np.float32]) -> None:
-    """:func:`cell_minimum_ranges` in one pass over the points: the cells of :func:`_cells`
-    (non-finite points skipped; the elevation by a binary search of the boundaries' tangents,
-    the sensor's own position by the angle), each lowered to its nearest return."""
-    na, ne = img.shape
+    """The compiled part of :func:`cell_minimum_ranges`: the elevation cells of :func:`_cells`
+    (non-finite points skipped; a binary search of the boundaries' tangents, the angle itself
+    straight up, straight down and at the sensor), each cell lowered to its nearest return."""
+    ne = img.shape[1]
     to_deg = 180.0 / np.pi
     for p in range(P.shape[0]):
         x, y, z = P[p, 0], P[p, 1], P[p, 2]
@@ -133,7 +137,6 @@ def _cell_minima(P: NDArray[np.float64], az_deg: float, el_deg: float, tan_edges
         r = np.sqrt(x * x + y * y)
         if not np.isfinite(r):  # |x|, |y| > 1e154: the squares overflow
             r = np.hypot(x, y)
-        a = int(np.floor((np.arctan2(y, x) * to_deg + 180.0) / az_deg)) % na
         if r > 0.0:
             lo, hi = 0, tan_edges.shape[0]
             while lo < hi:
@@ -143,10 +146,10 @@ def _cell_minima(P: NDArray[np.float64], az_deg: float, el_deg: float, tan_edges
                 else:
                     hi = mid
             e = lo
-        else:  # straight up or down, or the origin: the angle itself
+        else:
             e = min(max(int(np.floor((np.arctan2(z, r) * to_deg + 90.0) / el_deg)), 0), ne - 1)
-        if r < img[a, e]:
-            img[a, e] = r
+        if r < img[a[p], e]:
+            img[a[p], e] = r
 
 
 def _empty_image(points: NDArray, az_deg: float, el_deg: float) -> tuple[NDArray[np.float64], tuple | None]:
