@@ -974,6 +974,20 @@ def _clique_objective(indptr, indices, data, sel, m):
     return (k + total) / k
 
 
+@nb.njit(cache=True, inline="always")
+def best_candidate(cand: NDArray[np.int64], n_cand: int, score: NDArray) -> tuple[int, float]:
+    """The greedy step shared by every greedy clique kernel: the first of ``cand[:n_cand]`` with
+    the highest score (-1, -1.0 when no score is positive)."""
+    bi = -1
+    bs = -1.0
+    for c in range(n_cand):
+        v = cand[c]
+        if score[v] > bs:
+            bs = score[v]
+            bi = v
+    return bi, bs
+
+
 @nb.njit(cache=True)
 def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_work,
                  prune_to_best, skip_covered, covered, allowed):
@@ -1023,13 +1037,7 @@ def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_wo
         total_w = 0.0
         aborted = False
         while n_cand > 0:
-            bi = -1
-            bs = -1.0
-            for c in range(n_cand):
-                v = cand[c]
-                if score[v] > bs:
-                    bs = score[v]
-                    bi = v
+            bi, bs = best_candidate(cand, n_cand, score)
             # Bound on any clique grown from here: the candidates S (j = |S|) add at most
             # their current scores (<= bs each) plus j (j - 1) / 2 w_max among themselves;
             # the objective, quasi-convex in j, is largest at j = 0 or j = n_cand.

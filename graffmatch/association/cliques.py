@@ -17,7 +17,21 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from graffmatch.association.clipper import _clique_objective
+from graffmatch.association.clipper import _clique_objective, best_candidate
+
+
+@nb.njit(cache=True, inline="always")
+def _seed_candidates(indptr, indices, data, s, allowed, score, cand) -> int:
+    """The allowed neighbours of start ``s`` as candidates (CSR order), each scored by its edge
+    to ``s``; returns how many."""
+    n_cand = 0
+    for t in range(indptr[s], indptr[s + 1]):
+        j = indices[t]
+        if allowed[j]:
+            score[j] = data[t]
+            cand[n_cand] = j
+            n_cand += 1
+    return n_cand
 
 
 @nb.njit(cache=True)
@@ -33,22 +47,10 @@ def _grow_cliques(indptr, indices, data, starts, allowed):
     for s in starts:
         if not allowed[s]:
             continue
-        n_cand = 0
-        for t in range(indptr[s], indptr[s + 1]):
-            j = indices[t]
-            if allowed[j]:
-                score[j] = data[t]
-                cand[n_cand] = j
-                n_cand += 1
+        n_cand = _seed_candidates(indptr, indices, data, s, allowed, score, cand)
         clique = [s]
         while n_cand > 0:
-            bi = -1
-            bs = -1.0
-            for c in range(n_cand):
-                v = cand[c]
-                if score[v] > bs:
-                    bs = score[v]
-                    bi = v
+            bi, _ = best_candidate(cand, n_cand, score)
             clique.append(bi)
             for t in range(indptr[bi], indptr[bi + 1]):
                 is_nbr[indices[t]] = True
@@ -106,23 +108,11 @@ def _grow_cliques_dense(indptr, indices, data, starts, allowed):
     for s in starts:
         if not allowed[s]:
             continue
-        n_cand = 0
-        for t in range(indptr[s], indptr[s + 1]):
-            j = indices[t]
-            if allowed[j]:
-                score[j] = data[t]
-                cand[n_cand] = j
-                n_cand += 1
+        n_cand = _seed_candidates(indptr, indices, data, s, allowed, score, cand)
         clique[0] = s
         size = 1
         while n_cand > 0:
-            bi = -1
-            bs = -1.0
-            for c in range(n_cand):
-                v = cand[c]
-                if score[v] > bs:
-                    bs = score[v]
-                    bi = v
+            bi, _ = best_candidate(cand, n_cand, score)
             clique[size] = bi
             size += 1
             new_n = 0
