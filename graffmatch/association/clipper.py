@@ -990,7 +990,7 @@ def best_candidate(cand: NDArray[np.int64], n_cand: int, score: NDArray) -> tupl
 
 @nb.njit(cache=True)
 def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_work,
-                 prune_to_best, skip_covered, covered, allowed):
+                 prune_to_best, skip_covered, covered, allowed, w_max=-1.0):
     """Grow a greedy max-weight clique from each start, in order; returns the cliques found.
 
     Each step adds the candidate (adjacent to the whole clique and ``allowed``) with the largest
@@ -1002,12 +1002,15 @@ def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_wo
         (``prune_to_best``) or <= ``lower_bound``;
       * the total of edges visited stops at ``max_work``, also within a growth (deterministic,
         not a timer; a growth cut short is dropped).
+    ``w_max``: the largest weight (max(0, data.max())) when the caller knows it; a negative value
+    scans ``data`` for it here (a scalar pass: 3.4 ms over W2's 2.5 M weights, numpy's 0.4).
     Returns (members, offsets, objectives, work): clique c is members[offsets[c]:offsets[c+1]]."""
     m = indptr.shape[0] - 1
-    w_max = 0.0
-    for t in range(data.shape[0]):
-        if data[t] > w_max:
-            w_max = data[t]
+    if w_max < 0.0:
+        w_max = 0.0
+        for t in range(data.shape[0]):
+            if data[t] > w_max:
+                w_max = data[t]
     score = np.zeros(m)
     is_cand = np.zeros(m, dtype=np.bool_)
     adjacent = np.zeros(m, dtype=np.bool_)
@@ -1133,6 +1136,7 @@ def greedy_cliques(
     members, offsets, objectives, _ = _greedy_core(
         indptr, indices, data, starts, float(lower_bound), max(n_max, 0), budget, False, True,
         np.zeros(W.shape[0], dtype=np.bool_), np.ones(W.shape[0], dtype=np.bool_),
+        max(0.0, float(data.max())) if data.shape[0] else 0.0,
     )
     return [members[offsets[c]:offsets[c + 1]] for c in range(len(objectives))], objectives
 
@@ -1202,7 +1206,7 @@ def _greedy_stage(csr: tuple, sol: ClipperSolution, cfg: ClipperConfig,
         budget = max(int(cfg.greedy_max_work * indices.shape[0]), cfg.greedy_min_work)
         members, offsets, objectives, work = _greedy_core(
             indptr, indices, data, starts, density + 1e-9, starts.size, budget, True, False,
-            np.zeros(m, dtype=np.bool_), core,
+            np.zeros(m, dtype=np.bool_), core, max(w_max, 0.0),
         )
     sol.info.update(clipper_density=float(density), greedy_work=int(work),
                     greedy_cliques=int(objectives.size), greedy_core=int(keep.size))
