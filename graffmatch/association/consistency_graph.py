@@ -165,6 +165,9 @@ def _squarings(epsilon: float, inv_two_sigma2: float) -> int:
 # Largest table of one row's windows per source landmark kept from the counting pass for the
 # filling pass (m x n_i x 2 int32; 13 MB at W3) instead of merging the sorted runs twice.
 _MAX_WINDOW_TABLE_BYTES = 64 * 2**20
+# Entries the affine fill writes per chunk of a window (2.5 M at W2: 10.3 -> 8.0 ms for the fill
+# against a loop over each window's own length, the same values).
+_CHUNK = 8
 
 
 @nb.njit(cache=True)
@@ -188,9 +191,12 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
     n_i = D_i.shape[0]
     vals, b2s, start = _row_pair_tables(D_j, groups_j, n_groups)
     affine = row_base.shape[0] > 0
-    col_k = np.empty(b2s.shape[0] if affine else 0, dtype=np.int64)
-    for k in range(col_k.shape[0]):
+    # padded by a chunk: the affine fill reads and writes whole chunks of _CHUNK (see below)
+    col_k = np.zeros(b2s.shape[0] + _CHUNK if affine else 0, dtype=np.int64)
+    for k in range(b2s.shape[0] if affine else 0):
         col_k[k] = col_rank[b2s[k]]
+    vals_p = np.zeros(vals.shape[0] + _CHUNK)
+    vals_p[: vals.shape[0]] = vals
     src_vals, src_a2s, src_start = _row_pair_tables(D_i, groups_i, n_groups)
     win0 = np.zeros(n_i, dtype=np.int64)
     win1 = np.zeros(n_i, dtype=np.int64)
@@ -215,10 +221,10 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
                     c += lookup[a2, b2s[k]] >= 0
         indptr[u + 1] = indptr[u] + c
         longest = max(longest, c)
-    indices = np.empty(indptr[m], dtype=index.dtype)
+    indices = np.empty(indptr[m] + _CHUNK, dtype=index.dtype)  # (+ a chunk: see the affine fill)
     data = np.empty(indptr[m], dtype=weights.dtype)
     wdeg = np.zeros(m)
-    buf_x = np.empty(longest)
+    buf_x = np.empty(longest + _CHUNK)
     buf_w = np.empty(longest)
     for u in range(m):
         a, b = assoc[u, 0], assoc[u, 1]
@@ -235,12 +241,22 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
                 continue
             d = D_i[a, a2]
             if affine:
+                # whole chunks of _CHUNK into the padded buffers (the entries past the window
+                # are overwritten by the next one): the windows are short (~10 at W2), and a
+                # loop of fixed length compiles to vector code without a scalar remainder
                 base = row_base[a2]
-                for k in range(win0[a2], win1[a2]):
-                    indices[pos + n] = base + col_k[k]
-                    c = d - vals[k]
-                    buf_x[n] = -c * c * inv_two_sigma2
-                    n += 1
+                k0 = win0[a2]
+                cnt = win1[a2] - k0
+                for t0 in range(0, cnt, _CHUNK):
+                    xv = buf_x[n + t0:n + t0 + _CHUNK]
+                    iv = indices[pos + n + t0:pos + n + t0 + _CHUNK]
+                    vv = vals_p[k0 + t0:k0 + t0 + _CHUNK]
+                    cv = col_k[k0 + t0:k0 + t0 + _CHUNK]
+                    for t in range(_CHUNK):
+                        iv[t] = base + cv[t]
+                        c = d - vv[t]
+                        xv[t] = -c * c * inv_two_sigma2
+                n += cnt
                 continue
             for k in range(win0[a2], win1[a2]):
                 v = lookup[a2, b2s[k]]
@@ -257,7 +273,7 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
             data[pos + t] = buf_w[t]
             s += data[pos + t]
         wdeg[u] = s
-    return indptr, indices, data, wdeg
+    return indptr, indices[: indptr[m]], data, wdeg
 
 
 def _affine_ids(lookup: NDArray, gi: NDArray[np.int64], gj: NDArray[np.int64]
