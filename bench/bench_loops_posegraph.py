@@ -128,7 +128,8 @@ def main() -> None:
         ap.error("--runs is needed (or --synthetic)")
 
     from graffmatch.datasets.registry import open_dataset
-    from graffmatch.loops.io import loop_edges, read_kitti, read_loops_csv
+    from graffmatch.geometry.pose_files import read_kitti
+    from graffmatch.loops.io import loop_edges, read_loops_csv
     from graffmatch.loops.posegraph import (
         OdometryDriftConfig,
         PoseGraphConfig,

@@ -15,12 +15,12 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from graffmatch.errors import InvalidInputError, MalformedFileError
 from graffmatch.geometry.landmarks import LandmarkSet
+from graffmatch.geometry.pose_files import snap_to_se3
 
-PoseFormat = Literal["kitti", "tum"]
 #: Suffixes read as point clouds (mirrors graffmatch.lidar.io.POINT_SUFFIXES, kept here so that
 #: ``graffmatch --help`` does not import Open3D).
 SCAN_SUFFIXES = (".bin", ".pcd", ".ply", ".npy", ".npz")
@@ -198,21 +198,6 @@ def counts_text(ls: LandmarkSet) -> str:
 _NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 
 
-def _project_to_se3(T: NDArray, source: str) -> NDArray:
-    """Accept text transforms with a few digits: snap R to SO(3) if it is within 1e-3."""
-    R = T[:3, :3]
-    U, _, Vt = np.linalg.svd(R)
-    Rn = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-    if not np.all(np.isfinite(T)) or np.abs(Rn - R).max() > 1e-3:
-        raise InvalidInputError(f"{source}: the rotation block is not a rotation matrix")
-    if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6):
-        raise InvalidInputError(f"{source}: the last row must be 0 0 0 1")
-    out = np.eye(4)
-    out[:3, :3] = Rn
-    out[:3, 3] = T[:3, 3]
-    return out
-
-
 def parse_transform(text: str, source: str = "transform") -> NDArray[np.float64]:
     """16 numbers (4x4) or 12 numbers (KITTI 3x4, row-major) -> a 4x4 rigid transform."""
     values = [float(v) for v in _NUMBER.findall(text)]
@@ -225,7 +210,7 @@ def parse_transform(text: str, source: str = "transform") -> NDArray[np.float64]
         raise InvalidInputError(
             f"{source}: expected 12 (3x4) or 16 (4x4) numbers, found {len(values)}"
         )
-    return _project_to_se3(np.asarray(T, float), source)
+    return snap_to_se3(T, source)
 
 
 def read_transform(arg: str) -> NDArray[np.float64]:
@@ -343,47 +328,6 @@ def parse_board(spec: str):
         )
     extra = {} if m[4] is None else {"margin": float(m[4])}
     return Chessboard(cols=int(m[1]), rows=int(m[2]), square=float(m[3]), **extra)
-
-
-def rotation_to_quaternion_xyzw(R: ArrayLike) -> NDArray[np.float64]:
-    """Unit quaternion (x, y, z, w) with w >= 0, the TUM order."""
-    from scipy.spatial.transform import Rotation
-
-    q = Rotation.from_matrix(np.asarray(R, float)).as_quat()
-    return -q if q[3] < 0 else q
-
-
-def pose_line(T: ArrayLike, fmt: PoseFormat, timestamp: float = 0.0) -> str:
-    """One pose line: KITTI (12 numbers of the 3x4, row-major) or TUM (t tx ty tz qx qy qz qw)."""
-    T = np.asarray(T, float)
-    if fmt == "kitti":
-        return " ".join(f"{v:.9e}" for v in T[:3, :].reshape(-1))
-    if fmt == "tum":
-        q = rotation_to_quaternion_xyzw(T[:3, :3])
-        vals = [timestamp, *T[:3, 3], *q]
-        return " ".join(f"{v:.9f}" for v in vals)
-    raise InvalidInputError(f"unknown pose format {fmt!r} (kitti or tum)")
-
-
-def write_pose_file(path: Path, T: ArrayLike, fmt: PoseFormat, timestamp: float = 0.0) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(pose_line(T, fmt, timestamp) + "\n")
-    return path
-
-
-def read_pose_line(line: str, fmt: PoseFormat) -> NDArray[np.float64]:
-    """Inverse of :func:`pose_line` (used by the tests and by ``view``)."""
-    vals = [float(v) for v in line.split()]
-    if fmt == "kitti":
-        return parse_transform(line, "pose line")
-    if len(vals) != 8:
-        raise MalformedFileError(f"TUM pose line needs 8 numbers, got {len(vals)}")
-    from scipy.spatial.transform import Rotation
-
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(vals[4:8]).as_matrix()
-    T[:3, 3] = vals[1:4]
-    return T
 
 
 # ----------------------------------------------------------------------------------------------

@@ -226,7 +226,8 @@ def register(
 
     An invalid result prints INVALID: <reason> on stderr, no pose on stdout, writes no pose file
     (unless --allow-invalid) and exits with 3."""
-    from graffmatch.cli.inputs import gt_from_dataset, path_record, read_transform, write_pose_file
+    from graffmatch.cli.inputs import gt_from_dataset, path_record, read_transform
+    from graffmatch.geometry.pose_files import write_poses
 
     # Check the cheap things first: a typo must not cost an extraction.
     if gt == "auto":
@@ -367,7 +368,7 @@ def register(
     pose_written = None
     if pose_format is not None and T_est is not None and (valid or allow_invalid):
         suffix = ".kitti.txt" if pose_format == PoseFormatChoice.kitti else ".tum.txt"
-        pose_written = write_pose_file(
+        pose_written = write_poses(
             pose_out or result_path.with_suffix(suffix), T_est, pose_format.value
         )
     view_written = None

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.geometry.pose_files import orthonormalize, read_pose_file, rows_to_poses
 from graffmatch.lidar.io import read_bin, read_label
 
 Array = NDArray[np.float64]
@@ -168,65 +169,6 @@ def read_kitti_bin(path: Path) -> NDArray[np.float32]:
 def read_kitti_labels(path: Path) -> NDArray[np.uint32]:
     """SemanticKITTI .label file -> (N,) uint32 (class in the low 16 bits)."""
     return read_label(path)
-
-
-def orthonormalize(T: Array) -> Array:
-    """Project the rotation blocks of (n, 4, 4) poses onto SO(3).
-
-    Pose files are printed with 6-7 digits, so their rotations are orthonormal only to ~1e-6;
-    downstream code validates transforms strictly, so we snap them once on load.
-    """
-    T = np.array(T, dtype=float)
-    U, _, Vt = np.linalg.svd(T[:, :3, :3])
-    d = np.sign(np.linalg.det(U @ Vt))
-    U[:, :, 2] *= d[:, None]
-    T[:, :3, :3] = U @ Vt
-    T[:, 3] = [0.0, 0.0, 0.0, 1.0]
-    return T
-
-
-def rows_to_poses(rows: Array, what: str) -> Array:
-    """(n, 12) rows of 3x4 matrices -> (n, 4, 4) poses (validated, snapped to SE(3))."""
-    rows = np.asarray(rows, dtype=float).reshape(-1, 12)
-    if not np.all(np.isfinite(rows)):
-        raise MalformedFileError(f"{what}: pose contains NaN or Inf")
-    T = np.zeros((len(rows), 4, 4))
-    T[:, :3, :] = rows.reshape(-1, 3, 4)
-    T[:, 3, 3] = 1.0
-    R = T[:, :3, :3]
-    err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2)) if len(T) else []
-    bad = np.flatnonzero(np.asarray(err) > 1e-3)
-    if bad.size:
-        raise MalformedFileError(f"{what}: pose {int(bad[0])} has a non-orthonormal rotation")
-    return orthonormalize(T)
-
-
-def read_pose_file(path: Path, n_columns: int = 12) -> Array:
-    """Whitespace-separated pose file, one row of ``n_columns`` numbers per line.
-
-    Returns the raw (n, n_columns) array; blank lines and ``#`` comments are skipped.
-    Every malformed line is reported with its number, not as a numpy error.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise InvalidInputError(f"pose file not found: {path}")
-    rows: list[list[float]] = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
-        line = line.split("#", 1)[0].strip()
-        if not line:
-            continue
-        parts = line.replace(",", " ").split()
-        if len(parts) != n_columns:
-            raise MalformedFileError(
-                f"{path}:{lineno}: expected {n_columns} numbers, got {len(parts)}"
-            )
-        try:
-            rows.append([float(v) for v in parts])
-        except ValueError as exc:
-            raise MalformedFileError(f"{path}:{lineno}: not a number ({exc})") from exc
-    if not rows:
-        raise MalformedFileError(f"{path}: no poses")
-    return np.asarray(rows, dtype=float)
 
 
 def read_kitti_calib(path: Path) -> dict[str, Array]:

@@ -24,11 +24,10 @@ from graffmatch.datasets.base import (
     camera_to_lidar_poses,
     numbered_files,
     read_kitti_calib,
-    read_pose_file,
     read_times,
-    rows_to_poses,
 )
 from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.geometry.pose_files import read_pose_file, rows_to_poses
 
 
 class KittiLayoutSequence(ScanSequence):

@@ -24,12 +24,10 @@ from graffmatch.datasets.base import (
     ScanSequence,
     calib_transform,
     numbered_files,
-    orthonormalize,
     read_kitti_calib,
-    read_pose_file,
-    rows_to_poses,
 )
 from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.geometry.pose_files import orthonormalize, read_pose_file, rows_to_poses
 
 
 def kitti360_sequence_name(sequence: str | int) -> str:

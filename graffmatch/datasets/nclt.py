@@ -28,8 +28,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation, Slerp
 
-from graffmatch.datasets.base import ScanSequence, numbered_files, orthonormalize
+from graffmatch.datasets.base import ScanSequence, numbered_files
 from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.geometry.pose_files import orthonormalize
 
 #: NCLT body -> Velodyne extrinsic: x, y, z [m], roll, pitch, yaw [deg] (see module docstring).
 NCLT_X_BODY_VELO = (0.002, -0.004, -0.957, 0.807, 0.166, -90.703)

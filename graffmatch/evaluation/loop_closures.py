@@ -26,7 +26,6 @@ themselves are already in ``places.py``.
 from __future__ import annotations
 
 import json
-import os
 import time
 import warnings
 from collections.abc import Sequence
@@ -37,6 +36,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from graffmatch.atomic_files import write_text_atomic
 from graffmatch.datasets.base import Dataset, ScanSequence
 from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation.executors import LocalProcessExecutor, SerialExecutor
@@ -415,7 +415,7 @@ def build_loop_closure_dataset(
         "summary": summary,
     }
     summary["n_negatives"] = summary_negatives
-    _atomic_write(out_dir / PAIRS_FILE, json.dumps(doc, indent=1))
+    write_text_atomic(out_dir / PAIRS_FILE, json.dumps(doc, indent=1))
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
     if figure:
         from graffmatch.evaluation.figures import plot_dataset_details
@@ -423,12 +423,6 @@ def build_loop_closure_dataset(
         plot_dataset_details(LoopClosureDataset.load(out_dir), out_dir / "dataset_details.png")
     summary["total_s"] = time.perf_counter() - t_start
     return summary
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def _summary(

@@ -19,9 +19,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import re
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -29,6 +27,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from graffmatch.atomic_files import write_json_atomic
 from graffmatch.errors import MalformedFileError
 from graffmatch.evaluation import metrics as M
 
@@ -86,17 +85,7 @@ def record_path(out_dir: str | Path, suite: str, method: str, pair_id: str) -> P
 
 def atomic_write_json(path: Path, doc: Any) -> None:
     """Write JSON so that a reader sees the old file or the complete new one, never half."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(doc, f, indent=1)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_json_atomic(path, doc, fsync=True)
 
 
 def read_record(path: Path) -> dict[str, Any] | None:

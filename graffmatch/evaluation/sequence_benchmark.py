@@ -348,7 +348,7 @@ def run_mapclosures(dataset, retrieval: RetrievalConfig, poses: Array | None = N
 
         P = kiss_icp_odometry(dataset)
         if odometry_file is not None:
-            from graffmatch.loops.io import write_kitti
+            from graffmatch.geometry.pose_files import write_kitti
 
             Path(odometry_file).parent.mkdir(parents=True, exist_ok=True)
             write_kitti(odometry_file, P)

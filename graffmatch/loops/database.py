@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from graffmatch.atomic_files import write_bytes_atomic
 from graffmatch.errors import InvalidInputError, MalformedFileError
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 
@@ -66,12 +67,7 @@ def landmarks_to_bytes(ls: LandmarkSet) -> bytes:
 
 def save_landmarks(path: str | Path, ls: LandmarkSet) -> Path:
     """Write atomically (a killed run never leaves a half-written file behind)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(landmarks_to_bytes(ls))
-    tmp.replace(path)
-    return path
+    return write_bytes_atomic(path, landmarks_to_bytes(ls))
 
 
 def load_landmarks(path: str | Path) -> LandmarkSet:

@@ -6,7 +6,7 @@
   followed by the 21 upper-triangular entries of the 6x6 information matrix, translation
   first (g2o's order). An edge i -> j holds ``T_i_j`` (pose of j in i's frame), so a loop edge
   is ``match query T_match_query``.
-* KITTI: 12 values a line (top 3x4 of ``T_world_lidar``); TUM: ``t x y z qx qy qz qw``.
+* Trajectories (KITTI, TUM): :mod:`graffmatch.geometry.pose_files`.
 """
 
 from __future__ import annotations
@@ -17,9 +17,10 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
+from graffmatch.atomic_files import write_text_atomic
 from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.geometry.pose_files import pose_to_xyzq, xyzq_to_pose
 from graffmatch.loops.verify import LoopClosure
 
 Array = NDArray[np.float64]
@@ -31,15 +32,6 @@ LOOP_COLUMNS = (
 )
 
 
-def _atomic_text(path: Path, text: str) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
-    return path
-
-
 def write_loops_csv(path: str | Path, loops: Iterable[LoopClosure]) -> Path:
     lines = [",".join(LOOP_COLUMNS)]
     for lc in loops:
@@ -47,7 +39,7 @@ def write_loops_csv(path: str | Path, loops: Iterable[LoopClosure]) -> Path:
         vals = [str(lc.query), str(lc.match)] + [f"{v:.9g}" for v in T]
         vals += [f"{lc.confidence:.6f}", f"{lc.overlap:.6f}", str(lc.n_associations), str(lc.n_agreeing)]
         lines.append(",".join(vals))
-    return _atomic_text(Path(path), "\n".join(lines) + "\n")
+    return write_text_atomic(Path(path), "\n".join(lines) + "\n")
 
 
 def read_loops_csv(path: str | Path) -> list[LoopClosure]:
@@ -80,20 +72,6 @@ def read_loops_csv(path: str | Path) -> list[LoopClosure]:
             except (KeyError, TypeError, ValueError) as exc:
                 raise MalformedFileError(f"{path}:{lineno}: bad row ({exc})") from exc
     return out
-
-
-def pose_to_xyzq(T: Array) -> Array:
-    """(7,) x y z qx qy qz qw of a 4x4 transform."""
-    T = np.asarray(T, float)
-    return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_quat()])
-
-
-def xyzq_to_pose(v: Sequence[float]) -> Array:
-    v = np.asarray(v, float)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(v[3:7]).as_matrix()
-    T[:3, 3] = v[:3]
-    return T
 
 
 def loop_information(lc: LoopClosure, min_sigma_m: float = 0.05, lever_m: float = 10.0) -> Array:
@@ -134,7 +112,7 @@ def write_g2o(
     for i, j, T, info in edges:
         vals = list(pose_to_xyzq(T)) + _info_upper(info)
         lines.append(f"EDGE_SE3:QUAT {int(i)} {int(j)} " + " ".join(f"{v:.9g}" for v in vals))
-    return _atomic_text(Path(path), "\n".join(lines) + "\n")
+    return write_text_atomic(Path(path), "\n".join(lines) + "\n")
 
 
 def loop_edges(loops: Iterable[LoopClosure]) -> list[tuple[int, int, Array, Array]]:
@@ -154,42 +132,14 @@ def read_g2o(path: str | Path) -> tuple[dict[int, Array], list[tuple[int, int, A
             continue
         try:
             if parts[0] == "VERTEX_SE3:QUAT":
-                verts[int(parts[1])] = xyzq_to_pose([float(v) for v in parts[2:9]])
+                verts[int(parts[1])] = xyzq_to_pose([float(v) for v in parts[2:9]], f"{path}:{lineno}")
             elif parts[0] == "EDGE_SE3:QUAT":
                 vals = [float(v) for v in parts[3:]]
                 if len(vals) != 28:
                     raise ValueError(f"{len(vals)} values, expected 28")
-                edges.append((int(parts[1]), int(parts[2]), xyzq_to_pose(vals[:7]), _info_from_upper(vals[7:])))
+                edges.append((int(parts[1]), int(parts[2]), xyzq_to_pose(vals[:7], f"{path}:{lineno}"), _info_from_upper(vals[7:])))
             else:
                 raise ValueError(f"unknown tag {parts[0]!r}")
         except (ValueError, IndexError) as exc:
             raise MalformedFileError(f"{path}:{lineno}: {exc}") from exc
     return verts, edges
-
-
-def write_kitti(path: str | Path, poses: Array) -> Path:
-    P = np.asarray(poses, float)
-    return _atomic_text(Path(path), "\n".join(" ".join(f"{v:.9g}" for v in T[:3, :4].ravel()) for T in P) + "\n")
-
-
-def read_kitti(path: str | Path) -> Array:
-    from graffmatch.datasets.base import read_pose_file, rows_to_poses
-
-    return rows_to_poses(read_pose_file(Path(path), 12), str(path))
-
-
-def write_tum(path: str | Path, poses: Array, timestamps: Sequence[float]) -> Path:
-    P = np.asarray(poses, float)
-    t = np.asarray(timestamps, float)
-    if len(t) != len(P):
-        raise InvalidInputError(f"{len(P)} poses but {len(t)} timestamps")
-    rows = [f"{ti:.9f} " + " ".join(f"{v:.9g}" for v in pose_to_xyzq(T)) for ti, T in zip(t, P, strict=True)]
-    return _atomic_text(Path(path), "\n".join(rows) + "\n")
-
-
-def read_tum(path: str | Path) -> tuple[Array, Array]:
-    """(timestamps (n,), poses (n, 4, 4)) of a TUM trajectory file."""
-    from graffmatch.datasets.base import read_pose_file
-
-    rows = read_pose_file(Path(path), 8)
-    return rows[:, 0], np.stack([xyzq_to_pose(r[1:]) for r in rows])

@@ -336,7 +336,7 @@ def odometry_for(dataset, source: str, drift: OdometryDriftConfig | None = None)
         return kiss_icp_odometry(dataset)
     from pathlib import Path
 
-    from graffmatch.loops.io import read_kitti
+    from graffmatch.geometry.pose_files import read_kitti
 
     P = read_kitti(Path(source))
     if len(P) != len(dataset):

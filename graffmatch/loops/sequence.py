@@ -38,9 +38,10 @@ from numpy.typing import NDArray
 from graffmatch.datasets.base import Dataset
 from graffmatch.errors import InvalidInputError, MalformedFileError
 from graffmatch.evaluation.executors import make_executor
+from graffmatch.geometry.pose_files import write_kitti, write_tum
 from graffmatch.loops.database import LandmarkDatabase, load_landmarks, save_landmarks
 from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig
-from graffmatch.loops.io import loop_edges, write_g2o, write_kitti, write_loops_csv, write_tum
+from graffmatch.loops.io import loop_edges, write_g2o, write_loops_csv
 from graffmatch.loops.quickcheck import QuickIndex, quick_index
 from graffmatch.loops.retrieval import eligible_count
 from graffmatch.loops.verify import LoopClosure, verify_query

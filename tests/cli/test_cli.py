@@ -16,9 +16,9 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from graffmatch.cli.inputs import read_pose_line
 from graffmatch.cli.main import app
 from graffmatch.geometry.landmarks import LandmarkSet
+from graffmatch.geometry.pose_files import parse_pose_line
 from graffmatch.geometry.transforms import transform_errors
 from tests.viz.conftest import make_scene
 
@@ -177,7 +177,7 @@ def test_register_landmark_files_with_ground_truth(synth, tmp_path):
     # ... prints them, writes the pose line, the config and the view.
     assert f"{rot:.3f}°" in res.stdout and "inliers" in res.stdout
     pose = out.with_suffix(".tum.txt").read_text().strip()
-    np.testing.assert_allclose(read_pose_line(pose, "tum"), T, atol=1e-6)
+    np.testing.assert_allclose(parse_pose_line(pose, "tum")[1], T, atol=1e-12)
     assert yaml.safe_load(out.with_name("result.config.yaml").read_text())["matcher"]["rho"] == 40
     html = (tmp_path / "v.html").read_text()
     assert "data-graffmatch-rendered" in html and "inliers (" in html
@@ -221,7 +221,7 @@ def test_register_kitti_pose_and_icp_refinement(synth, tmp_path):
     assert rot < 0.5 and trans < 0.05
     line = (tmp_path / "T.txt").read_text().strip()
     assert len(line.split()) == 12
-    np.testing.assert_allclose(read_pose_line(line, "kitti"), T, atol=1e-8)
+    np.testing.assert_allclose(parse_pose_line(line, "kitti")[1], T, atol=1e-12)
 
 
 def test_icp_without_support_points_is_a_clear_error(synth, tmp_path):

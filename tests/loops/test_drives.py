@@ -11,9 +11,10 @@ import pytest
 
 from graffmatch.datasets.registry import open_dataset
 from graffmatch.datasets.simulator import SUITES, TrajectoryConfig, simulate_dataset
+from graffmatch.geometry.pose_files import read_kitti, read_tum
 from graffmatch.geometry.transforms import invert, rotation_error_deg
 from graffmatch.loops import LoopDetector, LoopDetectorConfig
-from graffmatch.loops.io import read_g2o, read_kitti, read_loops_csv, read_tum
+from graffmatch.loops.io import read_g2o, read_loops_csv
 from graffmatch.loops.sequence import read_queries, run_loops
 
 N_SCANS = 70

@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from graffmatch.errors import InvalidInputError, MalformedFileError
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
+from graffmatch.geometry.pose_files import read_kitti, read_tum, write_kitti, write_tum
 from graffmatch.geometry.transforms import invert
 from graffmatch.loops import (
     DescriptorConfig,
@@ -20,17 +21,7 @@ from graffmatch.loops import (
     make_retriever,
 )
 from graffmatch.loops.database import decode_landmarks, encode_landmarks, landmarks_to_bytes
-from graffmatch.loops.io import (
-    loop_edges,
-    read_g2o,
-    read_kitti,
-    read_loops_csv,
-    read_tum,
-    write_g2o,
-    write_kitti,
-    write_loops_csv,
-    write_tum,
-)
+from graffmatch.loops.io import loop_edges, read_g2o, read_loops_csv, write_g2o, write_loops_csv
 from graffmatch.loops.posegraph import drifted_odometry, optimize_pose_graph, trajectory_errors
 
 
