@@ -230,33 +230,6 @@ def read_transform(arg: str) -> NDArray[np.float64]:
     raise MalformedFileError(f"{arg}: ground-truth transform file not found")
 
 
-def gt_from_dataset(source: Path, target: Path) -> NDArray[np.float64]:
-    """``--gt auto``: T_target_source from the poses of the KITTI-layout folder holding both scans.
-
-    ``<root>/velodyne/NNNNNN.bin`` with ``<root>/poses.txt`` (and ``calib.txt`` for KITTI's
-    camera-0 poses): T_target_source = inv(T_world_target) @ T_world_source.
-    """
-    from graffmatch.datasets.folder import KittiFolder
-
-    roots = {p.resolve().parent.parent for p in (source, target)}
-    if len(roots) != 1 or any(p.resolve().parent.name != "velodyne" for p in (source, target)):
-        raise InvalidInputError(
-            "--gt auto needs both scans in the velodyne/ folder of one KITTI-layout dataset "
-            "(with poses.txt)"
-        )
-    root = roots.pop()
-    if not (root / "poses.txt").is_file():
-        raise MalformedFileError(f"{root / 'poses.txt'}: not found (needed by --gt auto)")
-    ds = KittiFolder(root)
-    index = {ds.scan_path(i).resolve(): i for i in range(len(ds))}
-    try:
-        i, j = index[source.resolve()], index[target.resolve()]
-    except KeyError as exc:
-        raise InvalidInputError(f"--gt auto: {exc.args[0]} is not a scan of {root}") from exc
-    L = ds.poses
-    return np.linalg.inv(L[j]) @ L[i]
-
-
 # ----------------------------------------------------------------------------------------------
 # camera-depth calibration inputs
 # ----------------------------------------------------------------------------------------------

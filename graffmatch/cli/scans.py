@@ -226,12 +226,13 @@ def register(
 
     An invalid result prints INVALID: <reason> on stderr, no pose on stdout, writes no pose file
     (unless --allow-invalid) and exits with 3."""
-    from graffmatch.cli.inputs import gt_from_dataset, path_record, read_transform
+    from graffmatch.cli.inputs import path_record, read_transform
+    from graffmatch.datasets.folder import ground_truth_between
     from graffmatch.geometry.pose_files import write_poses
 
     # Check the cheap things first: a typo must not cost an extraction.
     if gt == "auto":
-        T_gt = gt_from_dataset(source, target)
+        T_gt = ground_truth_between(source, target)
     else:
         T_gt = read_transform(gt) if gt is not None else None
     for p in (source, target):

@@ -106,3 +106,31 @@ class KittiFolder(KittiLayoutSequence):
             name=name or root.name,
         )
         self.root = root
+
+
+def ground_truth_between(source: str | Path, target: str | Path) -> np.ndarray:
+    """T_target_source of two scan files from the poses of the KITTI-layout folder holding both.
+
+    What ``graffmatch register --gt auto`` uses, so a Python user scores a pair the same way.
+
+    ``<root>/velodyne/NNNNNN.bin`` with ``<root>/poses.txt`` (and ``calib.txt`` for KITTI's
+    camera-0 poses): T_target_source = inv(T_world_target) @ T_world_source.
+    """
+    source, target = Path(source), Path(target)
+    roots = {p.resolve().parent.parent for p in (source, target)}
+    if len(roots) != 1 or any(p.resolve().parent.name != "velodyne" for p in (source, target)):
+        raise InvalidInputError(
+            f"{source}, {target}: ground truth needs both scans in the velodyne/ folder of one "
+            "KITTI-layout dataset (with poses.txt)"
+        )
+    root = roots.pop()
+    if not (root / "poses.txt").is_file():
+        raise MalformedFileError(f"{root / 'poses.txt'}: not found (needed for the ground truth)")
+    ds = KittiFolder(root)
+    index = {ds.scan_path(i).resolve(): i for i in range(len(ds))}
+    try:
+        i, j = index[source.resolve()], index[target.resolve()]
+    except KeyError as exc:
+        raise InvalidInputError(f"{exc.args[0]}: not a scan of {root}") from exc
+    L = ds.poses
+    return np.linalg.inv(L[j]) @ L[i]

@@ -18,6 +18,7 @@ from graffmatch.datasets import (
     open_dataset,
     register,
 )
+from graffmatch.datasets.folder import ground_truth_between
 from graffmatch.datasets.nclt import nclt_body_to_velo, ssc_to_transform, write_nclt_bin
 from graffmatch.errors import InvalidInputError, MalformedFileError
 from graffmatch.geometry.transforms import (
@@ -171,6 +172,29 @@ def test_folder_without_calib_and_truncated_scan(tmp_path: Path, rng) -> None:
     (tmp_path / "poses.txt").write_text(_rows(bad))
     with pytest.raises(MalformedFileError, match="non-orthonormal"):
         KittiFolder(tmp_path)
+
+
+def test_ground_truth_between_two_scan_files(tmp_path: Path, rng) -> None:
+    """``register --gt auto``'s library call: inv(T_world_target) @ T_world_source, or a clear error."""
+    T = _random_poses(rng, 3)
+    for i, s in enumerate(_random_scans(rng, 3)):
+        _write_bin(tmp_path / "velodyne" / f"{i:06d}.bin", s)
+    (tmp_path / "poses.txt").write_text(_rows(T))
+    scan = [tmp_path / "velodyne" / f"{i:06d}.bin" for i in range(3)]
+    G = ground_truth_between(scan[2], scan[0])
+    np.testing.assert_allclose(G, np.linalg.inv(T[0]) @ T[2], atol=1e-9)
+    np.testing.assert_allclose(ground_truth_between(scan[0], scan[2]) @ G, np.eye(4), atol=1e-9)
+    other = tmp_path / "elsewhere" / "velodyne" / "000000.bin"
+    _write_bin(other, _random_scans(rng, 1)[0])
+    with pytest.raises(InvalidInputError, match="needs both scans in the velodyne/ folder"):
+        ground_truth_between(scan[0], other)
+    extra = tmp_path / "velodyne" / "notes.bin"
+    _write_bin(extra, _random_scans(rng, 1)[0])
+    with pytest.raises(InvalidInputError, match="notes.bin: not a scan of"):
+        ground_truth_between(extra, scan[0])
+    (tmp_path / "poses.txt").unlink()
+    with pytest.raises(MalformedFileError, match="poses.txt: not found"):
+        ground_truth_between(scan[1], scan[0])
 
 
 def test_registry_is_explicit() -> None:
