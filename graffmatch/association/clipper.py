@@ -18,7 +18,7 @@ share the same numba CSR kernels and the same bounds, and splitting them would s
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numba as nb
 import numpy as np
@@ -285,10 +285,11 @@ def _qmatvec_rows(indptr, indices, data, dense, x, rows, d, Qx):
 
 
 @nb.njit(cache=True)
-def _dense_block(indptr, indices, data, rows, d):
+def _dense_block(indptr, indices, data, rows, d, store):
     """The quadratic form of F on the active ``rows`` as a dense float32 matrix: w on edges,
     -d on non-edges, 1 on the diagonal (M - d Cbar). No cancellation: the penalty is stored
-    per entry instead of as d (A + I) x - d sum x.
+    per entry instead of as d (A + I) x - d sum x. Written to the start of the flat float32
+    ``store`` (>= n^2 entries; see :class:`_DenseStore`) and returned as an n x n view of it.
 
     Each row is scattered branch-free into a buffer with one spare column, where the columns
     outside ``rows`` land (a test per non-zero mispredicts on ~n / m of them: 3-6x slower at
@@ -298,7 +299,7 @@ def _dense_block(indptr, indices, data, rows, d):
     pos = np.full(m, n, dtype=np.int64)
     for i in range(n):
         pos[rows[i]] = i
-    out = np.empty((n, n), dtype=np.float32)
+    out = store[: n * n].reshape((n, n))
     buf = np.empty(n + 1, dtype=np.float32)
     nd = np.float32(-d)
     for i in range(n):
@@ -315,21 +316,50 @@ def _dense_block(indptr, indices, data, rows, d):
 
 
 @nb.njit(cache=True)
-def _dense_block_shrink(prev, sel, d):
+def _dense_block_shrink(store, n_prev, sel, d):
     """:func:`_dense_block` of a subset of the previous dense block's rows (``sel``: their
-    positions in it) at a new penalty d, gathered from that block (n^2 reads instead of the
-    rows' non-zeros): its non-edges are its negative entries (weights are >= 0, the old penalty
-    was > 0), the same float32 values otherwise."""
+    positions in it, ascending) at a new penalty d, gathered from that block (n^2 reads instead
+    of the rows' non-zeros): its non-edges are its negative entries (weights are >= 0, the old
+    penalty was > 0), the same float32 values otherwise.
+
+    In place: the previous block is the n_prev x n_prev start of the flat ``store``, and the new
+    one overwrites it. Entry (i, j) goes to i n + j and comes from sel[i] n_prev + sel[j] >=
+    i n + j, which no earlier write has reached (every later read lies beyond every earlier
+    write), so no value is overwritten before it is read."""
     n = sel.shape[0]
-    out = np.empty((n, n), dtype=np.float32)
     nd = np.float32(-d)
     for i in range(n):
-        src = prev[sel[i]]
-        row = out[i]
+        src = sel[i] * n_prev
+        dst = i * n
         for j in range(n):
-            x = src[sel[j]]
-            row[j] = nd if x < 0.0 else x
-    return out
+            x = store[src + sel[j]]
+            store[dst + j] = nd if x < 0.0 else x
+    return store[: n * n].reshape((n, n))
+
+
+class _DenseStore:
+    """One float32 buffer for the dense blocks, kept from one solve to the next (at most
+    ``ClipperConfig.max_dense_block_mb``): a fresh 2-4 MB block costs its page faults every
+    solve (~0.5 ms at W1, ~1.4 ms at W2, more than filling it). A solve takes the buffer and
+    gives it back (``list.pop`` / ``append`` are atomic, so concurrent solves never share one:
+    the second allocates its own)."""
+
+    _free: ClassVar[list[np.ndarray]] = []
+
+    @classmethod
+    def take(cls, n_entries: int) -> np.ndarray:
+        try:
+            buf = cls._free.pop()
+        except IndexError:
+            buf = None
+        if buf is None or buf.shape[0] < n_entries:
+            buf = np.empty(n_entries, dtype=np.float32)
+        return buf
+
+    @classmethod
+    def give_back(cls, buf: np.ndarray, max_bytes: float) -> None:
+        if buf.nbytes <= max_bytes and not cls._free:
+            cls._free.append(buf)
 
 
 @nb.njit(cache=True)
@@ -708,7 +738,10 @@ def _homotopy(indptr, indices, data, u0,
     sub_ids = np.arange(m)  # global vertex ids of the rows of ``sub``
     row_nnz = np.diff(indptr)
     max_dense = cfg.max_dense_block_mb * 2**20
-    prev_dense, prev_idx, prev_d = _NO_DENSE, np.zeros(0, dtype=np.int64), 0.0  # the last dense block
+    prev_idx, prev_d = np.zeros(0, dtype=np.int64), 0.0  # the last dense block's rows and d
+    # the dense blocks' buffer, the last block at its start (not given back after an exception:
+    # the next solve then allocates its own)
+    store = _DenseStore.take(0)
     for outer in range(1, cfg.max_outer_iterations + 1):  # noqa: B007 (returned count)
         idx = np.flatnonzero(active)
         n = idx.size
@@ -717,17 +750,19 @@ def _homotopy(indptr, indices, data, u0,
             # A small, dense active set: its block as a dense matrix (contiguous rows, no
             # gathers) is cheaper to multiply than its rows in CSR.
             if prev_d > 0.0 and prev_idx.size and np.all(np.isin(idx, prev_idx, assume_unique=True)):
-                dense = _dense_block_shrink(prev_dense, np.searchsorted(prev_idx, idx), d)
+                dense = _dense_block_shrink(store, prev_idx.size, np.searchsorted(prev_idx, idx), d)
             else:
-                dense = _dense_block(indptr, indices, data, idx, d)
-            prev_dense, prev_idx, prev_d = dense, idx, d
+                if store.shape[0] < n * n:
+                    store = np.empty(n * n, dtype=np.float32)
+                dense = _dense_block(indptr, indices, data, idx, d, store)
+            prev_idx, prev_d = idx, d
             uk = np.ascontiguousarray(u[idx])
             rows = np.arange(n)
         elif n * 2 > m or row_nnz[idx].sum() * 8 > _MAX_SUBGRAPH_BYTES:
             # A large active set: run on its rows of the whole graph instead of copying an
             # induced subgraph of a similar size (the copy was +90 MB at m = 11.5k).
             sub, sub_ids = (indptr, indices, data), np.arange(m)
-            prev_dense, prev_idx, prev_d = _NO_DENSE, np.zeros(0, dtype=np.int64), 0.0
+            prev_idx, prev_d = np.zeros(0, dtype=np.int64), 0.0
             uk = np.zeros(m)
             uk[idx] = u[idx]
             rows = idx
@@ -787,6 +822,7 @@ def _homotopy(indptr, indices, data, u0,
         if not np.isfinite(step):
             break
         d += step
+    _DenseStore.give_back(store, max_dense)
     return u, outer, inner_total, matvecs, float(d), Mu
 
 

@@ -447,12 +447,20 @@ def test_dense_blocks_equal_a_numpy_reference_and_shrink_from_the_previous_block
     d = 0.37
     ref = np.where(A[np.ix_(rows, rows)] != 0, A[np.ix_(rows, rows)], np.float32(-d)).astype(np.float32)
     np.fill_diagonal(ref, 1.0)
-    block = _dense_block(W.indptr, W.indices, W.data, rows, d)
-    assert block.dtype == np.float32 and np.array_equal(block, ref)
+    store = np.full(rows.size**2 + 7, np.nan, dtype=np.float32)  # larger than the block: a view of its start
+    block = _dense_block(W.indptr, W.indices, W.data, rows, d, store)
+    assert block.dtype == np.float32 and block.shape == ref.shape and np.array_equal(block, ref)
+    assert np.shares_memory(block, store) and np.isnan(store[rows.size**2:]).all()
     sub = np.sort(rng.choice(rows.size, 90, replace=False))  # positions in ``rows``
-    shrunk = _dense_block_shrink(block, sub, 5.25)
-    assert np.array_equal(shrunk, _dense_block(W.indptr, W.indices, W.data, rows[sub], 5.25))
+    expected = _dense_block(W.indptr, W.indices, W.data, rows[sub], 5.25, np.empty(90 * 90, np.float32)).copy()
+    shrunk = _dense_block_shrink(store, rows.size, sub, 5.25)  # in place, over the block it reads
+    assert np.shares_memory(shrunk, store) and np.array_equal(shrunk, expected)
     assert (shrunk == np.float32(-5.25)).sum() == (ref[np.ix_(sub, sub)] < 0).sum() > 0
+    # a shrink that keeps every row (n = n_prev) and one that keeps the last rows only
+    again = _dense_block_shrink(store, 90, np.arange(90), 5.25)
+    assert np.array_equal(again, expected)
+    tail = _dense_block_shrink(store, 90, np.arange(60, 90), 7.5)
+    assert np.array_equal(tail, np.where(expected[60:, 60:] < 0, np.float32(-7.5), expected[60:, 60:]))
 
 
 def test_builder_degrees_replace_the_validation_pass():
