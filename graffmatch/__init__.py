@@ -63,6 +63,10 @@ _EXPORTS: dict[str, str] = {
     "open_dataset": "graffmatch.datasets.registry",
     "make_scene_pair": "graffmatch.datasets.landmark_scene",
     "simulate_dataset": "graffmatch.datasets.simulator",
+    # sequences
+    "LoopDetector": "graffmatch.loops.detector",
+    "LoopDetectorConfig": "graffmatch.loops.detector",
+    "LoopClosure": "graffmatch.loops.verify",
     # evaluation
     "LoopClosureDataset": "graffmatch.evaluation.loop_closures",
     "build_suite": "graffmatch.evaluation.suites",

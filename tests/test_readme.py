@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
 import pytest
 
 from tests.conftest import REPO_ROOT
@@ -27,3 +28,11 @@ def test_readme_example_runs(code, monkeypatch):
         assert result.valid, result
     if "landmarks" in ns:
         assert len(ns["landmarks"]) > 5
+    if "loops" in ns:  # every reported loop closure is right (precision first), and there are many
+        from graffmatch.geometry.transforms import transform_errors
+
+        P = ns["drive"].poses
+        assert len(ns["loops"]) >= 40
+        for lc in ns["loops"]:
+            rot, trans = transform_errors(lc.T_match_query, np.linalg.inv(P[lc.match]) @ P[lc.query])
+            assert rot < 2.0 and trans < 1.0, (lc, rot, trans)
