@@ -492,10 +492,13 @@ def _cells_of(P: NDArray[np.float64], inv_h: float) -> tuple:
 
 
 @nb.njit(cache=True)
-def _dense_grid(ci: NDArray[np.int64], origin: NDArray[np.int64], dims: NDArray[np.int64]) -> tuple:
-    """(order, starts, dense) of a grid over a dense table: points sorted by cell in key order,
-    each cell's points in their original order (what a stable argsort of the packed keys gives),
-    the first row of each occupied cell, and each cell's run (-1: empty)."""
+def _dense_grid(ci: NDArray[np.int64], origin: NDArray[np.int64], dims: NDArray[np.int64],
+                P: NDArray[np.float64]) -> tuple:
+    """(order, starts, dense, points) of a grid over a dense table: points sorted by cell in key
+    order, each cell's points in their original order (what a stable argsort of the packed keys
+    gives), the first row of each occupied cell, each cell's run (-1: empty), and the rows of
+    ``P`` in that order (``P[order]``, gathered here: numpy's fancy indexing of 900 rows cost
+    ~11 us, a quarter of the whole constructor)."""
     n = ci.shape[0]
     dense = np.full(dims[0] * dims[1] * dims[2], -1, np.int32)
     flat = np.empty(n, np.int64)
@@ -529,7 +532,13 @@ def _dense_grid(ci: NDArray[np.int64], origin: NDArray[np.int64], dims: NDArray[
         j = dense[flat[a]]
         order[fill[j]] = a
         fill[j] += 1
-    return order, starts, dense
+    points = np.empty((n, 3))
+    for i in range(n):
+        a = order[i]
+        points[i, 0] = P[a, 0]
+        points[i, 1] = P[a, 1]
+        points[i, 2] = P[a, 2]
+    return order, starts, dense, points
 
 
 @nb.njit(cache=True)
@@ -551,16 +560,25 @@ def _near_box(P: NDArray[np.float64], inv_v: float) -> tuple:
 @nb.njit(cache=True)
 def _set_near_bits_of(P: NDArray[np.float64], inv_v: float, lo: NDArray[np.int64], dims: NDArray[np.int64],
                       bits: NDArray[np.uint8]) -> None:
-    """:func:`_set_near_bits` of the points' voxels (relative to ``lo``), without the arrays."""
+    """:func:`_set_near_bits` of the points' voxels (relative to ``lo``), without the arrays.
+
+    The three voxels z - 1, z, z + 1 of a column are consecutive bits: they are set as one
+    3-bit mask over (at most) two bytes, 9 writes a point instead of 27 (the same bitmap). The
+    second byte is written only when the mask reaches into it, i.e. holds a voxel of the box,
+    so it never lies past the bitmap's end."""
+    n1, n2 = dims[1], dims[2]
     for a in range(P.shape[0]):
         x = int(np.floor(P[a, 0] * inv_v)) - lo[0]
         y = int(np.floor(P[a, 1] * inv_v)) - lo[1]
         z = int(np.floor(P[a, 2] * inv_v)) - lo[2]
         for dx in range(-1, 2):
             for dy in range(-1, 2):
-                for dz in range(-1, 2):
-                    f = ((x + dx) * dims[1] + (y + dy)) * dims[2] + (z + dz)
-                    bits[f >> 3] |= np.uint8(1 << (f & 7))
+                f = ((x + dx) * n1 + (y + dy)) * n2 + (z - 1)
+                word = 7 << (f & 7)
+                i = f >> 3
+                bits[i] |= np.uint8(word & 255)
+                if word > 255:
+                    bits[i + 1] |= np.uint8(word >> 8)
 
 
 class CellHash:
@@ -586,9 +604,9 @@ class CellHash:
         if self.dims.max() >= _GRID_LIM:
             self.ok = False
             return
-        if np.prod(self.dims.astype(float)) <= _DENSE_MAX:  # one compiled pass: counting sort by cell
-            self.order, self.starts, self.dense = _dense_grid(ci, self.origin, self.dims)
-            self.points = P[self.order]
+        d0, d1, d2 = self.dims.tolist()
+        if float(d0) * float(d1) * float(d2) <= _DENSE_MAX:  # one compiled pass: counting sort by cell
+            self.order, self.starts, self.dense, self.points = _dense_grid(ci, self.origin, self.dims, P)
             self.tk, self.tv = np.zeros(0, np.int64), np.zeros(0, np.int64)
         else:
             self._hashed(P, ci - self.origin)

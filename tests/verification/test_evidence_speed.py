@@ -331,3 +331,25 @@ def test_voxel_downsample_equals_its_numpy_path(seed, n, scale, offset, voxel, c
         if len(want) > cap:
             want = want[np.linspace(0, len(want) - 1, cap).astype(np.int64)]
     np.testing.assert_array_equal(E.voxel_downsample(P, voxel, cap), want)
+
+
+@SETTINGS
+@given(st.integers(0, 10_000), st.sampled_from([0.05, 0.3, 0.5, 1.0, 2.0]), st.sampled_from([0.0, 1e3]))
+def test_cell_hash_and_near_bitmap_equal_their_numpy_specifications(seed, r, offset):
+    """The compiled constructor (counting sort by cell, points gathered in the same pass) and
+    the 'near' bitmap (3-bit masks per voxel column) build exactly the numpy specifications:
+    the same cells, order, points and bits, on clouds with points on cell boundaries too."""
+    rng = np.random.default_rng(seed)
+    P = _cloud(rng, 600, 20.0, offset)
+    P[:50] = np.round(P[:50] / (2 * r)) * (2 * r)  # on cell edges
+    h, ref = cell_hash.CellHash(P, r), cell_hash.CellHash._reference(P, r)
+    assert h.ok and ref.ok
+    for name in ("origin", "dims", "order", "starts", "dense", "points", "tk"):
+        np.testing.assert_array_equal(getattr(h, name), getattr(ref, name), err_msg=name)
+    assert h.points.flags.c_contiguous
+    bits, lo, dims, inv = h.near_bitmap()
+    rbits, rlo, rdims, rinv = h._near_bitmap_reference()
+    assert inv == rinv and (len(bits) > 0 or r < 0.3)  # (too many voxels at 5 cm: no bitmap)
+    np.testing.assert_array_equal(lo, rlo)
+    np.testing.assert_array_equal(dims, rdims)
+    np.testing.assert_array_equal(bits, rbits)
