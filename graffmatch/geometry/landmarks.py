@@ -314,12 +314,17 @@ def _validate_basis(bases: np.ndarray, types: np.ndarray) -> None:
 
 
 def _directions(bases: np.ndarray, types: np.ndarray) -> Array:
-    """Line direction (column 0) or plane normal (cross of the columns); zeros for points."""
+    """Line direction (column 0) or plane normal (cross of the columns); zeros for points.
+
+    The cross product written out (np.cross's own formula, the same roundings): np.cross's
+    axis handling cost more than the products (35 -> 20 us for a KITTI scan's 17 landmarks)."""
     out = np.zeros((bases.shape[0], 3))
     lines = types == LandmarkType.LINE
     planes = types == LandmarkType.PLANE
     out[lines] = bases[lines, :, 0]
-    out[planes] = np.cross(bases[planes, :, 0], bases[planes, :, 1])
+    B = bases[planes]
+    a0, a1, a2, b0, b1, b2 = B[:, 0, 0], B[:, 1, 0], B[:, 2, 0], B[:, 0, 1], B[:, 1, 1], B[:, 2, 1]
+    out[planes] = np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=1)
     return out
 
 

@@ -249,3 +249,17 @@ def test_load_rejects_invalid_content(tmp_path):
     path.write_bytes(b"PK\x03\x04" + b"\x00" * 60)
     with pytest.raises(MalformedFileError, match="lm.npz"):
         LandmarkSet.load(path)
+
+
+def test_plane_normals_are_np_cross_of_the_bases_bit_for_bit():
+    """The written-out cross product of ``directions`` rounds exactly as np.cross does (the
+    tilt gates and the registration read these normals)."""
+    from graffmatch.geometry.landmarks import _directions
+
+    rng = np.random.default_rng(4)
+    B = rng.normal(size=(400, 3, 3)) * rng.choice([1e-150, 1e-3, 1.0, 1e150], size=(400, 1, 1))
+    T = rng.integers(0, 3, 400)
+    D = _directions(B, T)
+    np.testing.assert_array_equal(D[T == 2], np.cross(B[T == 2, :, 0], B[T == 2, :, 1]))
+    np.testing.assert_array_equal(D[T == 1], B[T == 1, :, 0])
+    assert not D[T == 0].any() and _directions(B[:0], T[:0]).shape == (0, 3)
