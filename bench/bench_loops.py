@@ -36,13 +36,15 @@ N_SCANS = 300
 COURTYARD = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "balm_courtyard"
 
 
-def simulate(root: Path, n_scans: int, realism: str = "ideal") -> list[Path]:
-    """The six drives under ``root`` (``realism``: 'ideal' = session 1-6's clean, undistorted
-    scans; 'realistic' = the suites' preset: motion-distorted raw scans, movers, noisy labels)."""
+def simulate(root: Path, n_scans: int, realism: str = "ideal",
+             drives: list[tuple[str, int]] | None = None) -> list[Path]:
+    """The six drives (or ``drives``: (suite, seed) pairs) under ``root`` (``realism``: 'ideal' =
+    session 1-6's clean, undistorted scans; 'realistic' = the suites' preset: motion-distorted
+    raw scans, movers, noisy labels)."""
     from graffmatch.datasets.simulator import SUITES, simulate_dataset
 
     out = []
-    for name, seed in DRIVES:
+    for name, seed in drives or DRIVES:
         s = SUITES[name]
         d = root / f"{name}-s{seed}"
         if (d / "poses.txt").is_file() and len(list((d / "velodyne").glob("*.bin"))) == n_scans:

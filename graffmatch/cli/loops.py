@@ -70,6 +70,12 @@ def loops(
     exclude_frames: Annotated[int | None, typer.Option(min=0, help="Also skip this many recent scans.")] = None,
     radius: Annotated[float | None, typer.Option(min=0, help="Radius retriever: search radius (m).")] = None,
     min_confidence: Annotated[float | None, typer.Option(min=0, max=1, help="Report loops from this confidence.")] = None,
+    place_radius: Annotated[
+        float | None, typer.Option(min=0, help="Report only loops estimated at most this far apart (m), less --place-margin.")
+    ] = None,
+    place_margin: Annotated[
+        float | None, typer.Option(min=0, help="With --place-radius: the estimate's safety margin (m).")
+    ] = None,
     optimize: Annotated[bool, typer.Option(help="Pose graph with GTSAM; KITTI/TUM trajectories, ATE/RPE.")] = False,
     odometry: Annotated[
         str, typer.Option(help="Odometry for --optimize/radius: drift | gt | kiss-icp | PATH (KITTI poses).")
@@ -101,6 +107,10 @@ def loops(
         cfg.verification.min_confidence = min_confidence
     if max_verified is not None:
         cfg.verification.max_verified = max_verified
+    if place_radius is not None:
+        cfg.verification.max_translation_m = place_radius
+    if place_margin is not None:
+        cfg.verification.place_margin_m = place_margin
     cfg.verification.quick_check = quick_check
     cfg.verification.stop_when_accepted = not all_loops
     cfg = LoopDetectorConfig.model_validate(cfg.model_dump())

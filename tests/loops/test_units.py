@@ -340,3 +340,48 @@ def test_worker_scan_cache_is_bounded_and_reset_per_database():
     assert len(c.landmarks) == 3
     c.reset(("run", "db2"))
     assert c.landmarks == OrderedDict() and c.quick == OrderedDict()
+
+
+def test_loop_confidence_place_margin_and_landmark_poor_rule():
+    """loop_confidence (the one rule of the detector, the CLI and the benchmark): a loop estimated
+    inside the place radius but within place_margin_m of it scores 0; with few agreeing
+    landmarks a loop scores only when the verified matcher's confidence reaches the gate."""
+    from graffmatch.loops.verify import VerificationConfig, loop_confidence, required_agreeing
+
+    cfg = VerificationConfig(max_translation_m=5.0, place_margin_m=0.1, min_agreeing=6,
+                             few_landmarks_min_agreeing=3, few_landmarks_matcher_confidence=0.9)
+    # geometric mean of the agreement fraction and the matcher's confidence
+    assert loop_confidence(True, 0.81, 8, 0.64, 4.85, cfg) == pytest.approx(0.72)
+    assert loop_confidence(True, 0.81, 8, 0.64, 4.95, cfg) == 0.0  # inside 5 m, not by the margin
+    assert loop_confidence(True, 0.81, 8, 0.64, 5.2, cfg) == 0.0
+    assert loop_confidence(False, 0.81, 8, 0.64, 2.0, cfg) == 0.0  # the matcher said invalid
+    # 3 agreeing landmarks of a 4-landmark map: enough only when the matcher is confident
+    assert required_agreeing(0.95, cfg) == 3 and required_agreeing(0.85, cfg) == 6
+    assert required_agreeing(None, cfg) == 6
+    assert loop_confidence(True, 0.95, 3, 0.75, 2.0, cfg) == pytest.approx(np.sqrt(0.75 * 0.95))
+    assert loop_confidence(True, 0.85, 3, 0.75, 2.0, cfg) == 0.0
+    assert loop_confidence(True, 0.95, 2, 0.5, 2.0, cfg) == 0.0
+    # without a place radius the margin plays no part; without the gate min_agreeing always holds
+    free = cfg.model_copy(update={"max_translation_m": None, "few_landmarks_matcher_confidence": None})
+    assert loop_confidence(True, 0.81, 8, 0.64, 40.0, free) == pytest.approx(0.72)
+    assert loop_confidence(True, 0.99, 5, 0.9, 2.0, free) == 0.0
+    with pytest.raises(ValueError):
+        VerificationConfig(place_margin_m=-0.1)
+
+
+def test_place_margin_rejects_a_verified_loop_at_the_radius():
+    """verify_candidate: a loop 4.95 m away (estimated within centimetres) is reported with a 5 m
+    radius and no margin, and rejected with a 0.1 m margin; at 3 m both report it."""
+    from graffmatch.datasets.landmark_scene import make_scene_pair
+    from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig
+    from graffmatch.loops.verify import verify_candidate
+
+    det = LoopDetector(LoopDetectorConfig())
+    for dist, want_margin in ((4.95, False), (3.0, True)):
+        pair = make_scene_pair(seed=0, translation=(dist, 0.0, 0.0))
+        base = det.config.verification.model_copy(update={"max_translation_m": 5.0, "place_margin_m": 0.0})
+        v0 = verify_candidate(pair.source, pair.target, det.matcher, base)
+        assert abs(np.linalg.norm(v0["T_match_query"][:3, 3]) - dist) < 0.03
+        assert v0["confidence"] >= 0.5
+        v1 = verify_candidate(pair.source, pair.target, det.matcher, base.model_copy(update={"place_margin_m": 0.1}))
+        assert (v1["confidence"] == v0["confidence"]) if want_margin else (v1["confidence"] == 0.0)
