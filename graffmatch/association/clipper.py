@@ -749,8 +749,10 @@ def _homotopy(indptr, indices, data, u0,
         if n * n * 4 <= max_dense and n * n * _DENSE_ENTRY_COST < row_nnz[idx].sum():
             # A small, dense active set: its block as a dense matrix (contiguous rows, no
             # gathers) is cheaper to multiply than its rows in CSR.
-            if prev_d > 0.0 and prev_idx.size and np.all(np.isin(idx, prev_idx, assume_unique=True)):
-                dense = _dense_block_shrink(store, prev_idx.size, np.searchsorted(prev_idx, idx), d)
+            # idx within prev_idx (both sorted, distinct): where each would go in it holds it
+            at = np.searchsorted(prev_idx, idx) if prev_d > 0.0 and prev_idx.size else None
+            if at is not None and at[-1] < prev_idx.size and np.array_equal(prev_idx[at], idx):
+                dense = _dense_block_shrink(store, prev_idx.size, at, d)
             else:
                 if store.shape[0] < n * n:
                     store = np.empty(n * n, dtype=np.float32)

@@ -45,7 +45,10 @@ def check_associations(associations: ArrayLike, n_i: int, n_j: int) -> NDArray[n
     A = A.astype(np.int64)
     if A.size and (A.min() < 0 or A[:, 0].max() >= n_i or A[:, 1].max() >= n_j):
         raise InvalidInputError("association index out of range")
-    if len(np.unique(A, axis=0)) != len(A):
+    # a pair (a, b) in range is the key a n_j + b: duplicates are equal neighbours of the sorted
+    # keys (np.unique(A, axis=0) sorted a structured view: 0.6 ms for W1's 708 pairs)
+    keys = np.sort(A[:, 0] * n_j + A[:, 1])
+    if keys.size > 1 and bool(np.any(keys[1:] == keys[:-1])):
         raise InvalidInputError("associations contain duplicates")
     return A
 

@@ -92,3 +92,27 @@ def test_gated_graph_is_the_induced_subgraph():
     # and without the types (single window group) the same graph
     g2 = build_consistency_graph(Di, Dj, A)
     assert np.array_equal(g2.weights.toarray(), expected)
+
+
+def test_explicit_association_lists_are_checked_for_duplicates_anywhere_in_them():
+    """A repeated (a, b) pair is refused wherever it sits (the check sorts a n_j + b keys);
+    pairs that share one index only, or whose keys would collide without the range check, pass."""
+    import pytest
+
+    from graffmatch.association.putative import check_associations
+    from graffmatch.errors import InvalidInputError
+
+    rng = np.random.default_rng(5)
+    A = all_to_all(rng.integers(0, 3, 40), rng.integers(0, 3, 50))
+    perm = rng.permutation(len(A))
+    assert np.array_equal(check_associations(A[perm], 40, 50), A[perm])
+    for i, j in ((0, 1), (0, len(A) - 1), (len(A) // 2, 3)):
+        B = A[perm].copy()
+        B[j] = B[i]
+        with pytest.raises(InvalidInputError, match="duplicates"):
+            check_associations(B, 40, 50)
+    # (0, 7) and (1, 0) differ; with n_j = 7 their keys 7 and 7 would collide, but b = 7 is out of range
+    with pytest.raises(InvalidInputError, match="out of range"):
+        check_associations(np.array([[0, 7], [1, 0]]), 2, 7)
+    assert check_associations(np.array([[0, 6], [1, 0]]), 2, 7).shape == (2, 2)
+    assert check_associations(np.zeros((0, 2), dtype=np.int64), 2, 7).shape == (0, 2)
