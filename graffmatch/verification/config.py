@@ -91,6 +91,16 @@ class VerificationConfig(BaseModel):
     local_search_gain: float = Field(
         0.01, ge=0, description="a re-aligned leader replaces the leader when it explains this much more"
     )
+    vote_rotations: int = Field(
+        1, ge=0, description="the leading distinct rotations whose translation is re-estimated by voting on "
+        "the evidence points (0: off; full matcher only): right rotation, translation metres off (sim-downtown)",
+    )
+    vote_peaks: int = Field(3, ge=1, description="... the strongest vote peaks of each become hypotheses")
+    vote_align: int = Field(3, ge=1, description="... the best voted starts by occupancy are aligned and scored")
+    vote_points: int = Field(256, ge=8, description="... from this many evidence points of each scan")
+    vote_reach_m: float = Field(12.0, gt=0, description="... within this horizontal distance of its translation [m]")
+    vote_height_m: float = Field(1.0, gt=0, description="... from point pairs within this height of each other [m]")
+    vote_cell_m: float = Field(0.5, gt=0, description="... in cells of this size [m]")
     inlier_m: float = Field(0.3, gt=0, description="a point is explained within this distance [m]")
     landmark_deg: float = Field(5.0, gt=0, description="landmark-level evidence: angle tolerance [deg]")
     landmark_m: float = Field(0.4, gt=0, description="landmark-level evidence: offset tolerance [m]")
@@ -100,8 +110,14 @@ class VerificationConfig(BaseModel):
         description="the best hypothesis must explain at least this share (chosen on the calibration split)",
     )
     max_rival_ratio: float = Field(
-        0.825, gt=0, le=1,
+        0.9, gt=0, le=1,
         description="ambiguous when a distinct rival scores more than this fraction of the best (calibration split)",
+    )
+    max_rival_ratio_landmarks: float = Field(
+        0.825, gt=0, le=1,
+        description="... in place of max_rival_ratio with landmark-level evidence (bare landmarks, no support "
+        "points): session 7's value, which bench/fuzz_validity.py checks; bench/verification.py's pairs all "
+        "carry points and choose only max_rival_ratio",
     )
     free_space: bool = Field(
         True,
@@ -110,7 +126,7 @@ class VerificationConfig(BaseModel):
     )
     # the range image below was chosen among 24 variants on the calibration split (bench/verification.py)
     free_space_az_deg: float = Field(1.0, gt=0, le=30, description="free-space range image: azimuth cell [deg]")
-    free_space_el_deg: float = Field(1.0, gt=0, le=30, description="... elevation cell [deg]")
+    free_space_el_deg: float = Field(2.0, gt=0, le=30, description="... elevation cell [deg]")
     free_space_neighbours: int = Field(1, ge=0, le=5, description="... cells around each cell that shadow it")
     free_space_margin: float = Field(1.0, ge=0, description="a point conflicts this far in front of the return [m] ...")
     free_space_margin_rel: float = Field(0.05, ge=0, description="... or this fraction of the return's range")
@@ -119,12 +135,12 @@ class VerificationConfig(BaseModel):
         "used when a set carries it; free_space_neighbours applies to the support points' image)",
     )
     max_conflict: float = Field(
-        0.14, ge=0, le=1,
+        0.11, ge=0, le=1,
         description="invalid when more than this share of either scan's points lies in the other's observed "
         "free space (chosen on the calibration split of bench/verification.py)",
     )
     max_conflict_support_points: float = Field(
-        0.085, ge=0, le=1,
+        0.095, ge=0, le=1,
         description="... in place of max_conflict when either image comes from support points (a set without scan_ranges: "
         "a sparser image, more false conflicts; chosen apart on the calibration split of bench/verification.py)",
     )
@@ -148,7 +164,7 @@ class VerificationConfig(BaseModel):
         "on fuzz seed 1 of bench/fuzz_validity.py, reported on seed 0)",
     )
     confidence_coef: tuple[float, float, float, float] = Field(
-        (-5.589, 37.354, 1.699, -34.309),
+        (-7.425, 40.688, 5.178, -35.327),
         description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio) + c3 * conflict), "
         "fitted on the calibration split of bench/verification.py (conflict 0 without support points)",
     )

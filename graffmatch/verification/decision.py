@@ -142,13 +142,15 @@ def confidence_of(score: float, rival_ratio: float, cfg: VerificationConfig, con
     return float(1.0 / (1.0 + np.exp(-z)))
 
 
-def decide(hyps: list[Hypothesis], cfg: VerificationConfig, min_score: float) -> Verdict:
+def decide(hyps: list[Hypothesis], cfg: VerificationConfig, min_score: float,
+           max_ratio: float | None = None) -> Verdict:
     """Best valid-looking hypothesis vs. its best distinct rival.
 
     ``hyps`` are merged and sorted best first. Degenerate hypotheses cannot win, but they
     can be the rival: a poorly constrained alternative that explains the data as well still
-    makes the answer ambiguous.
+    makes the answer ambiguous. ``max_ratio``: the rival limit (default ``cfg.max_rival_ratio``).
     """
+    max_ratio = cfg.max_rival_ratio if max_ratio is None else max_ratio
     if not hyps:
         return Verdict(None, None, False, 0.0, 0.0, 1.0, ["no hypothesis could be registered"])
     usable = [h for h in hyps if not h.degenerate]
@@ -161,7 +163,7 @@ def decide(hyps: list[Hypothesis], cfg: VerificationConfig, min_score: float) ->
         problems.append(f"degenerate geometry (kappa={best.kappa:.3g})")
     if best.score < min_score:
         problems.append(f"overlap {best.score:.2f} < {min_score:.2f}")
-    if runner is not None and ratio > cfg.max_rival_ratio:
+    if runner is not None and ratio > max_ratio:
         rot, tr = transform_gap(best.T_target_source, runner.T_target_source)
         problems.append(
             f"ambiguous: a {rot:.0f} deg / {tr:.1f} m alternative ({runner.origin}, "

@@ -47,6 +47,7 @@ from graffmatch.verification.hypotheses import (
     rival_cliques,
     translation_redundancy,
 )
+from graffmatch.verification.translation_vote import vote_translations
 
 
 @dataclass
@@ -287,6 +288,40 @@ def _check_slide(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -> Non
         )
 
 
+def _translation_votes(merged: list[Hypothesis], source: LandmarkSet, target: LandmarkSet, ev: Evidence,
+                       cfg: VerificationConfig) -> list[Hypothesis]:
+    """The leading distinct rotations (best exact score first) with their translations
+    re-estimated by voting on the evidence points (``translation_vote.py``); the ``vote_align``
+    best of the voted starts by occupancy are aligned and scored exactly. Right rotation,
+    translation metres off is what the landmark registration gets wrong in a street of
+    repeating facades (sim-downtown)."""
+    rots: list[Hypothesis] = []
+    for h in sorted(merged, key=lambda h: -h.score):
+        if all(transform_gap(h.T_target_source, g.T_target_source)[0] > cfg.merge_deg for g in rots):
+            rots.append(h)
+            if len(rots) == cfg.vote_rotations:
+                break
+    P, Q = ev.source.sample(cfg.vote_points), ev.target.sample(cfg.vote_points)  # type: ignore[union-attr]
+    votes = []
+    for h in rots:
+        Ts = vote_translations(P, Q, h.T_target_source, cfg.vote_reach_m, cfg.vote_height_m, cfg.vote_cell_m,
+                               cfg.vote_peaks)
+        far = np.linalg.norm(Ts[:, :3, 3] - h.T_target_source[:3, 3], axis=1) > cfg.rival_m
+        for T in Ts[far]:  # a peak within rival_m of the hypothesis is the answer it already is
+            v = Hypothesis(T, h.associations, h.origin + "+vote", h.objective, h.kappa, h.degenerate)
+            v.info["vertices"] = h.info.get("vertices")
+            votes.append(v)
+    if not votes:
+        return []
+    score_hypotheses(votes, source, target, ev, cfg, exact=False)
+    votes = merge_hypotheses(votes, cfg)[: cfg.vote_align]
+    for v in votes:
+        v.info["T_landmarks"] = v.T_target_source
+        v.T_target_source = align_on_evidence(ev.source, ev.target, v.T_target_source)  # type: ignore[arg-type]
+    score_hypotheses(votes, source, target, ev, cfg, exact=True)
+    return votes
+
+
 def score_hypotheses(
     hyps: list[Hypothesis], source: LandmarkSet, target: LandmarkSet, ev: Evidence,
     cfg: VerificationConfig, exact: bool,
@@ -359,12 +394,15 @@ def verify_graph(
             h.info["T_landmarks"] = h.T_target_source
             h.T_target_source = T
         score_hypotheses(merged, source, target, ev, cfg, exact=True)
+        if cfg.vote_rotations > 0 and not pair_cands and merged:
+            merged = merge_hypotheses(merged + _translation_votes(merged, source, target, ev, cfg), cfg)
         lead = next((h for h in merged if not h.degenerate), None)
         if lead is not None and cfg.local_search_m > 0:
             _local_search(lead, ev, cfg)
         merged = merge_hypotheses(merged, cfg)
     min_score = cfg.min_overlap if ev.has_points else cfg.min_landmark_overlap
-    verdict = decide(merged, cfg, min_score)
+    verdict = decide(merged, cfg, min_score,
+                     cfg.max_rival_ratio if ev.has_points else cfg.max_rival_ratio_landmarks)
     if verdict.best is not None:
         verdict.best.info["evidence"] = "points" if ev.has_points else "landmarks"
     if not ev.has_points and verdict.best is not None:
