@@ -394,11 +394,16 @@ def verify_graph(
             h.info["T_landmarks"] = h.T_target_source
             h.T_target_source = T
         score_hypotheses(merged, source, target, ev, cfg, exact=True)
+        first = next((h for h in merged if not h.degenerate), None)  # stage 1's leader
         if cfg.vote_rotations > 0 and not pair_cands and merged:
             merged = merge_hypotheses(merged + _translation_votes(merged, source, target, ev, cfg), cfg)
-        lead = next((h for h in merged if not h.degenerate), None)
-        if lead is not None and cfg.local_search_m > 0:
-            _local_search(lead, ev, cfg)
+        lead = next((h for h in merged if not h.degenerate), None)  # the best exact score
+        if cfg.local_search_m > 0:
+            # both leaders: the exact leader may be a voted answer, and stage 1's leader a near
+            # miss that only the local search turns right (courtyard)
+            for h in (lead, first):
+                if h is not None and (h is lead or (h is not lead and any(h is x for x in merged))):
+                    _local_search(h, ev, cfg)
         merged = merge_hypotheses(merged, cfg)
     min_score = cfg.min_overlap if ev.has_points else cfg.min_landmark_overlap
     verdict = decide(merged, cfg, min_score,
