@@ -6,10 +6,10 @@ from pydantic import BaseModel, ConfigDict, Field
 
 #: lines-only (min_overlap, max_rival_ratio, max_conflict, max_slide_ratio): chosen on the lines-only
 #: calibration split of bench/verification.py (de-skewed drives extracted with poles.LAYERED_POLES,
-#: whole-scan free space at the full matcher's range image; bench/results/verification.json).
-#: Session 8: the range image chosen there (1 x 2 deg cells, 2 m margin) moved the choice from 0.2
-#: to 0.1125 min_overlap (test precision 0.991, 2 of 540 negatives valid: docs/verification.md)
-LINES_ONLY = (0.1125, 0.875, 0.18, 0.85)
+#: whole-scan free space at the full matcher's range image; bench/results/verification.json; session 8
+#: chose the same at its 1 x 2 deg, 2 m image). On the default one-layer poles the same values keep
+#: test precision 1.000 with no valid negative (session 7 rows)
+LINES_ONLY = (0.2, 0.875, 0.18, 0.85)
 
 
 class DecisionThresholds(BaseModel):
@@ -165,7 +165,7 @@ class VerificationConfig(BaseModel):
         "on fuzz seed 1 of bench/fuzz_validity.py, reported on seed 0)",
     )
     confidence_coef: tuple[float, float, float, float] = Field(
-        (-6.979, 41.311, 3.411, -39.577),
+        (-6.979, 41.402, 3.503, -39.874),
         description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio) + c3 * conflict), "
         "fitted on the calibration split of bench/verification.py (conflict 0 without support points)",
     )

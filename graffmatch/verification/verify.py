@@ -401,9 +401,10 @@ def verify_graph(
         if cfg.local_search_m > 0:
             # both leaders: the exact leader may be a voted answer, and stage 1's leader a near
             # miss that only the local search turns right (courtyard)
-            for h in (lead, first):
-                if h is not None and (h is lead or (h is not lead and any(h is x for x in merged))):
-                    _local_search(h, ev, cfg)
+            if lead is not None:
+                _local_search(lead, ev, cfg)
+            if first is not None and first is not lead and any(first is x for x in merged):
+                _local_search(first, ev, cfg)
         merged = merge_hypotheses(merged, cfg)
     min_score = cfg.min_overlap if ev.has_points else cfg.min_landmark_overlap
     verdict = decide(merged, cfg, min_score,
