@@ -51,9 +51,11 @@ class LoopDetector:
         self.retriever = make_retriever(self.config.retrieval)
         # One configured scan-to-scan path (graffmatch.pipeline.ScanMatcher): the same extractor
         # and verified matcher as register_scans, the CLI, the demo and the evaluation.
-        self.scan_matcher = ScanMatcher(
-            ScanMatcherConfig(extractor=self.config.extractor, matcher=self.config.matcher)
-        )
+        # The database keeps landmarks without their points (a few kB a scan), so the whole
+        # scan's range image (LandmarkSet.scan_ranges, ~4 ms a scan) would be computed and
+        # dropped: skip it. The stored tables are the same (tests/loops/test_units.py).
+        extractor = self.config.extractor.model_copy(update={"scan_ranges": False})
+        self.scan_matcher = ScanMatcher(ScanMatcherConfig(extractor=extractor, matcher=self.config.matcher))
         self.matcher = self.scan_matcher
         self.timings: dict[str, list[float]] = {"extract": [], "retrieve": [], "verify": []}
 

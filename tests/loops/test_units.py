@@ -15,6 +15,7 @@ from graffmatch.loops import (
     DescriptorConfig,
     LandmarkDatabase,
     LoopClosure,
+    LoopDetector,
     RetrievalConfig,
     eligible_count,
     landmark_descriptor,
@@ -385,3 +386,21 @@ def test_place_margin_rejects_a_verified_loop_at_the_radius():
         assert v0["confidence"] >= 0.5
         v1 = verify_candidate(pair.source, pair.target, det.matcher, base.model_copy(update={"place_margin_m": 0.1}))
         assert (v1["confidence"] == v0["confidence"]) if want_margin else (v1["confidence"] == 0.0)
+
+
+def test_loop_database_skips_the_range_image_it_would_drop(shared_data):
+    """LoopDetector extracts without the whole-scan range image: the stored tables are byte for
+    byte those of an extraction that computes it (the database keeps no points)."""
+    from graffmatch.lidar.extractor import LandmarkExtractor
+    from graffmatch.lidar.io import read_points
+
+    det = LoopDetector()
+    assert det.extractor.config.scan_ranges is False and det.config.extractor.scan_ranges is True
+    pts = read_points(shared_data / "kitti00_first6" / "velodyne" / "000000.bin")
+    full = LandmarkExtractor(det.config.extractor).extract(pts)
+    assert full.scan_ranges is not None
+    lean = det.extractor.extract(pts)
+    assert lean.scan_ranges is None
+    (a, da), (b, db) = det.prepare(full), det.prepare(lean)
+    assert landmarks_to_bytes(a) == landmarks_to_bytes(b) and np.array_equal(da, db)
+
