@@ -1028,7 +1028,7 @@ def best_candidate(cand: NDArray[np.int64], n_cand: int, score: NDArray) -> tupl
 
 @nb.njit(cache=True)
 def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_work,
-                 prune_to_best, skip_covered, covered, allowed, w_max=-1.0):
+                 prune_to_best, skip_covered, covered, allowed, w_max):
     """Grow a greedy max-weight clique from each start, in order; returns the cliques found.
 
     Each step adds the candidate (adjacent to the whole clique and ``allowed``) with the largest
@@ -1040,15 +1040,10 @@ def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_wo
         (``prune_to_best``) or <= ``lower_bound``;
       * the total of edges visited stops at ``max_work``, also within a growth (deterministic,
         not a timer; a growth cut short is dropped).
-    ``w_max``: the largest weight (max(0, data.max())) when the caller knows it; a negative value
-    scans ``data`` for it here (a scalar pass: 3.4 ms over W2's 2.5 M weights, numpy's 0.4).
+    ``w_max``: the largest weight, max(0, data.max()), from the caller (numpy's max: 0.4 ms over
+    W2's 2.5 M weights, where a scalar pass here took 3.4 ms).
     Returns (members, offsets, objectives, work): clique c is members[offsets[c]:offsets[c+1]]."""
     m = indptr.shape[0] - 1
-    if w_max < 0.0:
-        w_max = 0.0
-        for t in range(data.shape[0]):
-            if data[t] > w_max:
-                w_max = data[t]
     score = np.zeros(m)
     is_cand = np.zeros(m, dtype=np.bool_)
     adjacent = np.zeros(m, dtype=np.bool_)

@@ -228,7 +228,7 @@ def test_bounded_greedy_keeps_the_best_clique_of_independent_starts():
         starts = greedy_start_order(W, 40)
         _, _, obj, _ = _greedy_core(W.indptr, W.indices, W.data, starts, 0.0, 40,
                                        np.iinfo(np.int64).max, True, False, np.zeros(150, dtype=bool),
-                                       np.ones(150, dtype=bool))
+                                       np.ones(150, dtype=bool), max(0.0, float(W.data.max())))
         assert np.isclose(obj.max(), _independent_greedy_best(W, starts))
         assert np.all(np.diff(obj) > 0)  # with pruning to the best, each kept clique improves
 
