@@ -22,6 +22,7 @@ format cannot skip them.
 
 from __future__ import annotations
 
+import io
 import tokenize
 import warnings
 import zipfile
@@ -32,6 +33,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from graffmatch.atomic_files import write_bytes_atomic
 from graffmatch.errors import InvalidInputError, MalformedFileError, PrecisionLossWarning
 
 __all__ = [
@@ -182,10 +184,18 @@ def read_bin(path: str | Path) -> Points:
 
 
 def write_bin(path: str | Path, points: ArrayLike) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(as_points4(points).astype("<f4").tobytes())
-    return path
+    return write_bytes_atomic(path, as_points4(points).astype("<f4").tobytes())
+
+
+def _write_xyzi(path: str | Path, head: bytes, pts: np.ndarray, binary: bool) -> Path:
+    """Header plus x y z intensity rows, float32 little endian or ``repr`` text (exact floats)."""
+    if binary:
+        body = pts.astype("<f4").tobytes()
+    else:
+        body = "".join(
+            f"{x!r} {y!r} {z!r} {i!r}\n" for x, y, z, i in pts.astype(float).tolist()
+        ).encode("ascii")
+    return write_bytes_atomic(path, head + body)
 
 
 def read_label(path: str | Path, n_points: int | None = None) -> NDArray[np.uint32]:
@@ -213,10 +223,7 @@ def write_label(path: str | Path, labels: ArrayLike) -> Path:
     lab = np.asarray(labels).reshape(-1)
     if lab.dtype.kind not in "iu" or (lab.size and (lab.min() < 0 or lab.max() > 0xFFFFFFFF)):
         raise InvalidInputError("labels must be non-negative integers that fit in uint32")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(lab.astype("<u4").tobytes())
-    return path
+    return write_bytes_atomic(path, lab.astype("<u4").tobytes())
 
 
 def semantic_class(labels: ArrayLike) -> NDArray[np.uint32]:
@@ -341,16 +348,7 @@ def write_pcd(path: str | Path, points: ArrayLike, binary: bool = True) -> Path:
         f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\n"
         f"DATA {'binary' if binary else 'ascii'}\n"
     ).encode("ascii")
-    if binary:
-        body = pts.astype("<f4").tobytes()
-    else:
-        body = "".join(
-            f"{x!r} {y!r} {z!r} {i!r}\n" for x, y, z, i in pts.astype(float).tolist()
-        ).encode("ascii")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(head + body)
-    return path
+    return _write_xyzi(path, head, pts, binary)
 
 
 # --------------------------------------------------------------------------------------------
@@ -443,16 +441,7 @@ def write_ply(path: str | Path, points: ArrayLike, binary: bool = True) -> Path:
         "property float x\nproperty float y\nproperty float z\nproperty float intensity\n"
         "end_header\n"
     ).encode("ascii")
-    if binary:
-        body = pts.astype("<f4").tobytes()
-    else:
-        body = "".join(
-            f"{x!r} {y!r} {z!r} {i!r}\n" for x, y, z, i in pts.astype(float).tolist()
-        ).encode("ascii")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_bytes(head + body)
-    return path
+    return _write_xyzi(path, head, pts, binary)
 
 
 # --------------------------------------------------------------------------------------------
@@ -505,14 +494,13 @@ def _parse_npy(path: str | Path, key: str | None = None) -> NDArray:
 
 
 def write_npy(path: str | Path, points: ArrayLike) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     pts = as_points4(points)
-    if path.suffix == ".npz":
-        np.savez_compressed(path, points=pts)
+    buf = io.BytesIO()
+    if Path(path).suffix == ".npz":
+        np.savez_compressed(buf, points=pts)
     else:
-        np.save(path, pts)
-    return path
+        np.save(buf, pts)
+    return write_bytes_atomic(path, buf.getvalue())
 
 
 # --------------------------------------------------------------------------------------------

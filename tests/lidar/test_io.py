@@ -46,6 +46,24 @@ def test_round_trip_binary_formats(tmp_path: Path, cloud: np.ndarray, suffix: st
     np.testing.assert_array_equal(back, cloud)
 
 
+@pytest.mark.parametrize("suffix", [".bin", ".pcd", ".ply", ".npy", ".npz", ".label"])
+def test_writers_replace_whole_files_and_leave_no_temporaries(
+    tmp_path: Path, cloud: np.ndarray, suffix: str
+) -> None:
+    """Every writer goes through one atomic write: the exact path (no '.npy' appended), the
+    new content over an old file, and no temporary left beside it."""
+    path = tmp_path / "sub" / f"scan{suffix}"
+    for k in (1.0, 2.0):
+        if suffix == ".label":
+            labels = (np.arange(len(cloud)) * int(k)).astype(np.uint32)
+            assert write_label(path, labels) == path
+            np.testing.assert_array_equal(read_label(path, len(cloud)), labels)
+        else:
+            assert write_points(path, cloud * k) == path
+            np.testing.assert_array_equal(read_points(path), (cloud * k).astype(np.float32))
+    assert sorted(p.name for p in path.parent.iterdir()) == [path.name]
+
+
 @pytest.mark.parametrize("writer,reader", [(write_pcd, read_pcd), (write_ply, read_ply)])
 def test_round_trip_ascii(tmp_path: Path, cloud: np.ndarray, writer, reader) -> None:
     path = writer(tmp_path / "a", cloud, binary=False)
