@@ -45,6 +45,7 @@ _DENSE_ENTRY_COST = 0.2
 _SCATTER_FRACTION = 0.9
 _NO_DENSE = np.zeros((0, 0), dtype=np.float32)
 _NO_QU = np.zeros(0)
+_NO_POSITIONS = np.zeros(0, dtype=np.int64)
 
 
 class ClipperConfig(BaseModel):
@@ -293,15 +294,24 @@ def _dense_block(indptr, indices, data, rows, d, store):
 
     Each row is scattered branch-free into a buffer with one spare column, where the columns
     outside ``rows`` land (a test per non-zero mispredicts on ~n / m of them: 3-6x slower at
-    W2 / W3)."""
+    W2 / W3). With every row active there is none: each row is written in place."""
     n = rows.shape[0]
     m = indptr.shape[0] - 1
+    out = store[: n * n].reshape((n, n))
+    nd = np.float32(-d)
+    if n == m:  # every row (rows = 0..m-1, e.g. W1's first step): no column to divert
+        for i in range(n):
+            row = out[i]
+            for j in range(n):
+                row[j] = nd
+            for k in range(indptr[i], indptr[i + 1]):
+                row[indices[k]] = data[k]
+            row[i] = 1.0
+        return out
     pos = np.full(m, n, dtype=np.int64)
     for i in range(n):
         pos[rows[i]] = i
-    out = store[: n * n].reshape((n, n))
     buf = np.empty(n + 1, dtype=np.float32)
-    nd = np.float32(-d)
     for i in range(n):
         for j in range(n):
             buf[j] = nd
@@ -708,6 +718,75 @@ def _ascent_linear(indptr, indices, data, dense, u, rows, d, tol_u, tol_F, max_i
     return inner, matvecs
 
 
+@nb.njit(cache=True)
+def _active_rows(active, indptr):
+    """The active vertex ids (ascending, np.flatnonzero's) and their rows' stored non-zeros."""
+    m = active.shape[0]
+    idx = np.empty(m, dtype=np.int64)
+    n = 0
+    nnz = 0
+    for v in range(m):
+        if active[v]:
+            idx[n] = v
+            n += 1
+            nnz += indptr[v + 1] - indptr[v]
+    return idx[:n], nnz
+
+
+@nb.njit(cache=True)
+def _positions_in(prev, idx):
+    """Where each of ``idx`` sits in ``prev`` (both ascending, distinct), or an empty array when
+    ``prev`` is empty or lacks one of them (a merge: np.searchsorted and a check in one pass)."""
+    n = idx.shape[0]
+    p = prev.shape[0]
+    at = np.empty(n, dtype=np.int64)
+    if p == 0 or n == 0:
+        return at[:0]
+    j = 0
+    for i in range(n):
+        v = idx[i]
+        while j < p and prev[j] < v:
+            j += 1
+        if j == p or prev[j] != v:
+            return at[:0]
+        at[i] = j
+    return at
+
+
+@nb.njit(cache=True)
+def _scatter_back(u, uk, rows, idx):
+    """u = uk[rows] on ``idx`` and 0 elsewhere, in place; returns the ids of u's support
+    (ascending, as ``idx``). One pass instead of five numpy temporaries per homotopy step."""
+    u[:] = 0.0
+    n = idx.shape[0]
+    support = np.empty(n, dtype=np.int64)
+    c = 0
+    for i in range(n):
+        x = uk[rows[i]]
+        u[idx[i]] = x
+        support[c] = idx[i]
+        c += x > 0.0
+    return support[:c]
+
+
+@nb.njit(cache=True)
+def _update_active(u, Mu, Cu, d, s, eps, active):
+    """The homotopy's active-set update from the full-graph gradient Mu - d (s - Cu) (s = sum
+    u): vertices in u's support or with a non-negative gradient. If one lies outside ``active``,
+    ``active`` grows by them (True: redo the step); else it becomes exactly them (False). In
+    place, the same IEEE operations as the numpy expressions it replaces (no fastmath)."""
+    m = u.shape[0]
+    grew = False
+    for i in range(m):
+        if not active[i] and (u[i] > eps or Mu[i] - d * (s - Cu[i]) >= 0.0):
+            grew = True
+            break
+    for i in range(m):
+        new = u[i] > eps or Mu[i] - d * (s - Cu[i]) >= 0.0
+        active[i] = (active[i] or new) if grew else new
+    return grew
+
+
 def _homotopy(indptr, indices, data, u0,
               cfg: ClipperConfig) -> tuple[np.ndarray, int, int, int, float, np.ndarray]:
     """CLIPPER's outer loop with an active set.
@@ -736,22 +815,20 @@ def _homotopy(indptr, indices, data, u0,
     active = np.ones(m, dtype=np.bool_)
     sub = (indptr, indices, data)
     sub_ids = np.arange(m)  # global vertex ids of the rows of ``sub``
-    row_nnz = np.diff(indptr)
     max_dense = cfg.max_dense_block_mb * 2**20
     prev_idx, prev_d = np.zeros(0, dtype=np.int64), 0.0  # the last dense block's rows and d
     # the dense blocks' buffer, the last block at its start (not given back after an exception:
     # the next solve then allocates its own)
     store = _DenseStore.take(0)
     for outer in range(1, cfg.max_outer_iterations + 1):  # noqa: B007 (returned count)
-        idx = np.flatnonzero(active)
+        idx, idx_nnz = _active_rows(active, indptr)
         n = idx.size
         dense = _NO_DENSE
-        if n * n * 4 <= max_dense and n * n * _DENSE_ENTRY_COST < row_nnz[idx].sum():
+        if n * n * 4 <= max_dense and n * n * _DENSE_ENTRY_COST < idx_nnz:
             # A small, dense active set: its block as a dense matrix (contiguous rows, no
             # gathers) is cheaper to multiply than its rows in CSR.
-            # idx within prev_idx (both sorted, distinct): where each would go in it holds it
-            at = np.searchsorted(prev_idx, idx) if prev_d > 0.0 and prev_idx.size else None
-            if at is not None and at[-1] < prev_idx.size and np.array_equal(prev_idx[at], idx):
+            at = _positions_in(prev_idx, idx) if prev_d > 0.0 else _NO_POSITIONS
+            if at.shape[0]:  # idx within the last block's rows: gather from that block
                 dense = _dense_block_shrink(store, prev_idx.size, at, d)
             else:
                 if store.shape[0] < n * n:
@@ -760,7 +837,7 @@ def _homotopy(indptr, indices, data, u0,
             prev_idx, prev_d = idx, d
             uk = np.ascontiguousarray(u[idx])
             rows = np.arange(n)
-        elif n * 2 > m or row_nnz[idx].sum() * 8 > _MAX_SUBGRAPH_BYTES:
+        elif n * 2 > m or idx_nnz * 8 > _MAX_SUBGRAPH_BYTES:
             # A large active set: run on its rows of the whole graph instead of copying an
             # induced subgraph of a similar size (the copy was +90 MB at m = 11.5k).
             sub, sub_ids = (indptr, indices, data), np.arange(m)
@@ -780,8 +857,10 @@ def _homotopy(indptr, indices, data, u0,
             uk = np.ascontiguousarray(u[idx])
             rows = np.arange(idx.size)
         Qu0 = _NO_QU
-        if not np.any(uk[rows] > 0):
+        on_rows = uk if rows.shape[0] == uk.shape[0] else uk[rows]  # rows = 0..n-1: uk itself
+        if not np.any(on_rows > 0):
             uk[rows] = 1.0
+            on_rows = uk if rows.shape[0] == uk.shape[0] else uk[rows]
         elif (dense.shape[0] == 0 and cfg.line_search == "backtracking_linear"
               and not np.any((u > 0.0) & ~active)):
             # u lies on these rows, and Q u = (W + I) u + d (A + I) u = Mu + d Cu, known from
@@ -789,8 +868,11 @@ def _homotopy(indptr, indices, data, u0,
             # pass over the active rows; up to rounding, bench/solver_selections.py)
             Qu0 = np.zeros(uk.shape[0])
             Qu0[rows] = Mu[idx] + d * Cu[idx]
-        nrm = np.linalg.norm(uk[rows])
-        uk[rows] /= nrm
+        nrm = np.linalg.norm(on_rows)
+        if rows.shape[0] == uk.shape[0]:
+            uk /= nrm
+        else:
+            uk[rows] /= nrm
         if Qu0.shape[0]:
             Qu0[rows] /= nrm
         if cfg.line_search == "exact":
@@ -810,16 +892,10 @@ def _homotopy(indptr, indices, data, u0,
             )
         inner_total += inner
         matvecs += nmv + 1
-        u[:] = 0.0
-        u[idx] = uk[rows]
-        _matvecs_from_support(indptr, indices, data, u, idx[uk[rows] > 0.0], Mu, Cu)
-        grad = Mu - d * (u.sum() - Cu)
-        new_active = (u > cfg.eps) | (grad >= 0.0)
-        if np.any(new_active & ~active):
-            # An excluded vertex became profitable: redo this step with it (same d).
-            active |= new_active
-            continue
-        active = new_active
+        _matvecs_from_support(indptr, indices, data, u, _scatter_back(u, uk, rows, idx), Mu, Cu)
+        # u.sum() stays numpy's (pairwise) sum: the gradient below is the one it always was
+        if _update_active(u, Mu, Cu, d, u.sum(), cfg.eps, active):
+            continue  # an excluded vertex became profitable: redo this step with it (same d)
         step = _increment_d(u, Mu, Cu, cfg.eps, use_mean)
         if not np.isfinite(step):
             break
@@ -892,6 +968,23 @@ def _subgraph(indptr, indices, data, keep_mask):
     ip = np.cumsum(counts)
     ind = np.empty(ip[-1] + 1, dtype=indices.dtype)  # + 1: the branch-free copy writes one past a row
     dat = np.empty(ip[-1] + 1, dtype=data.dtype)
+    rows_nnz = 0
+    for v in range(m):
+        if keep_mask[v]:
+            rows_nnz += indptr[v + 1] - indptr[v]
+    if ip[-1] >= 0.9 * rows_nnz:
+        # Nearly every neighbour kept (pruning drops a few vertices): a branch that is almost
+        # always taken is predicted, and the write position no longer waits on keep_mask's load.
+        for v in range(m):
+            if keep_mask[v]:
+                pos = ip[newid[v]]
+                for t in range(indptr[v], indptr[v + 1]):
+                    w = indices[t]
+                    if keep_mask[w]:
+                        ind[pos] = newid[w]
+                        dat[pos] = data[t]
+                        pos += 1
+        return ip, ind[: ip[-1]], dat[: ip[-1]]
     for v in range(m):
         if keep_mask[v]:
             pos = ip[newid[v]]
@@ -1187,6 +1280,7 @@ def solve_clipper(weights: sp.spmatrix | ConsistencyGraph, config: ClipperConfig
     """
     cfg = config or ClipperConfig()
     wdeg = None  # weighted degrees, from the validation pass or the graph builder
+    w_max = None  # the largest weight, from the graph builder
     checked = False
     if isinstance(weights, ConsistencyGraph):
         csr = (weights.indptr, weights.indices, weights.data)
@@ -1194,6 +1288,7 @@ def solve_clipper(weights: sp.spmatrix | ConsistencyGraph, config: ClipperConfig
         if weights.weighted_degrees is not None and weights.weighted_degrees.shape == (m,):
             # built by build_consistency_graph: weights in (0, 1], no diagonal, degrees known
             wdeg, checked = weights.weighted_degrees, True
+            w_max = weights.max_weight
     else:
         W = weights if isinstance(weights, sp.csr_matrix) else sp.csr_matrix(weights)
         if W.shape[0] != W.shape[1]:
@@ -1210,12 +1305,12 @@ def solve_clipper(weights: sp.spmatrix | ConsistencyGraph, config: ClipperConfig
             csr, wdeg = _csr_parts(W), None
     sol = _solve_once(csr, m, cfg, u0)
     if cfg.greedy_starts and csr[1].shape[0]:
-        _greedy_stage(csr, sol, cfg, wdeg)
+        _greedy_stage(csr, sol, cfg, wdeg, w_max)
     return sol
 
 
 def _greedy_stage(csr: tuple, sol: ClipperSolution, cfg: ClipperConfig,
-                  wdeg: NDArray[np.float64] | None = None) -> None:
+                  wdeg: NDArray[np.float64] | None = None, w_max: float | None = None) -> None:
     """Let greedy cliques compete with CLIPPER's clique (in place on ``sol``), only where they can win.
 
     A clique of k vertices has objective <= 1 + (k - 1) w_max, so one that beats CLIPPER's
@@ -1227,7 +1322,7 @@ def _greedy_stage(csr: tuple, sol: ClipperSolution, cfg: ClipperConfig,
     indptr, indices, data = csr
     m = indptr.shape[0] - 1
     density = _clique_objective(indptr, indices, data, sol.selected, m)
-    w_max = float(data.max())
+    w_max = float(data.max()) if w_max is None else w_max  # the builder's: the same maximum
     k_min = int(np.floor((density - 1.0) / w_max)) + 2 if w_max > 0 else m + 1
     core = _kcore_keep(indptr, indices, k_min - 1) if k_min > 1 else np.ones(m, dtype=np.bool_)
     keep = np.flatnonzero(core)
@@ -1255,6 +1350,23 @@ def _greedy_stage(csr: tuple, sol: ClipperSolution, cfg: ClipperConfig,
         sol.info["chosen"] = "clipper"
 
 
+_STARTS: dict[int, np.ndarray] = {}
+
+
+def _uniform_start(seed: int, m: int) -> NDArray[np.float64]:
+    """``np.random.default_rng(seed).uniform(0, 1, m)``, read-only, from a kept stream: each
+    value takes one 64-bit draw, so the first m of a longer draw are these m values bit for bit,
+    and a solve skips the generator's seeding (~30-50 us, a W1 solve is ~3 ms)."""
+    cached = _STARTS.get(seed)
+    if cached is None or cached.shape[0] < m:
+        cached = np.random.default_rng(seed).uniform(0.0, 1.0, max(m, 1024))
+        cached.setflags(write=False)
+        if seed not in _STARTS and len(_STARTS) >= 8:
+            _STARTS.pop(next(iter(_STARTS)))  # a handful of seeds at most
+        _STARTS[seed] = cached
+    return cached[:m]
+
+
 def _solve_once(csr: tuple, m: int, cfg: ClipperConfig,
                 u0: NDArray[np.float64] | None) -> ClipperSolution:
     """CLIPPER alone on a checked graph (CSR arrays; square, weights in [0, 1], no diagonal)."""
@@ -1273,8 +1385,7 @@ def _solve_once(csr: tuple, m: int, cfg: ClipperConfig,
             indptr, indices, data = _subgraph(indptr, indices, data, mask)
     else:
         keep = np.arange(m)
-    rng = np.random.default_rng(cfg.seed)
-    start = rng.uniform(0.0, 1.0, m) if u0 is None else np.asarray(u0, dtype=float).reshape(m)
+    start = _uniform_start(cfg.seed, m) if u0 is None else np.asarray(u0, dtype=float).reshape(m)
     start = np.ascontiguousarray(start[keep])
     if not np.any(start > 0):
         raise InvalidInputError("start vector must have a positive entry")

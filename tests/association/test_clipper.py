@@ -542,3 +542,86 @@ def test_first_products_reused_keep_the_csr_ascent_and_selection():
     (x0, inner0, mv0), (x1, inner1, mv1) = runs
     assert inner0 == inner1 > 3 and mv1 == mv0 - 1
     assert np.allclose(x0, x1, atol=1e-12) and np.array_equal(x0 > 0, x1 > 0)
+
+
+def test_homotopy_step_helpers_equal_their_numpy_expressions():
+    """The compiled homotopy glue gives numpy's results bit for bit: the active rows and their
+    non-zeros, the positions of a subset in the last block's rows (or none), u scattered back
+    with its support, and the active-set update from the gradient Mu - d (sum u - Cu)."""
+    from graffmatch.association.clipper import (
+        _active_rows,
+        _positions_in,
+        _scatter_back,
+        _update_active,
+    )
+
+    rng = np.random.default_rng(9)
+    W = planted_graph(300, 30, 0.3, rng).astype(np.float32).tocsr()
+    m = W.shape[0]
+    for trial in range(20):
+        active = rng.random(m) < (0.2 + 0.04 * trial)
+        idx, nnz = _active_rows(active, W.indptr)
+        assert np.array_equal(idx, np.flatnonzero(active)) and nnz == np.diff(W.indptr)[idx].sum()
+        sub = np.sort(rng.choice(idx, max(1, idx.size // 3), replace=False))
+        assert np.array_equal(_positions_in(idx, sub), np.searchsorted(idx, sub))
+        assert _positions_in(idx, np.r_[sub, m + 5]).size == 0 and _positions_in(idx[:0], sub).size == 0
+        # u on the active rows, some of it clamped to zero
+        uk = np.where(rng.random(idx.size) < 0.5, 0.0, rng.random(idx.size))
+        rows = np.arange(idx.size)
+        u = rng.random(m)
+        support = _scatter_back(u, uk, rows, idx)
+        ref = np.zeros(m)
+        ref[idx] = uk[rows]
+        assert np.array_equal(u, ref) and np.array_equal(support, idx[uk[rows] > 0.0])
+        Mu, Cu = rng.normal(size=m), rng.normal(size=m) * 3
+        d = float(rng.uniform(0.1, 3.0))
+        eps = 1e-9 if trial % 2 else 0.3
+        grad = Mu - d * (u.sum() - Cu)
+        new = (u > eps) | (grad >= 0.0)
+        grew_ref = bool(np.any(new & ~active))
+        expect = (active | new) if grew_ref else new
+        act = active.copy()
+        assert _update_active(u, Mu, Cu, d, u.sum(), eps, act) == grew_ref
+        assert np.array_equal(act, expect)
+
+
+def test_start_vector_is_the_generators_draw_and_read_only():
+    """The kept start stream gives default_rng(seed).uniform(0, 1, m) bit for bit, for m below
+    and above what was drawn before, and cannot be written through."""
+    from graffmatch.association.clipper import _uniform_start
+
+    for seed in (0, 3):
+        for m in (5, 2000, 700, 1, 5000):
+            got = _uniform_start(seed, m)
+            assert got.tobytes() == np.random.default_rng(seed).uniform(0.0, 1.0, m).tobytes()
+            assert not got.flags.writeable
+
+
+def test_subgraph_copy_paths_are_the_same():
+    """The induced subgraph is the same CSR bit for bit whether few vertices are dropped (the
+    predicted-branch copy) or many (the branch-free copy), against scipy's slicing."""
+    from graffmatch.association.clipper import _subgraph
+
+    rng = np.random.default_rng(4)
+    W = planted_graph(400, 40, 0.3, rng).astype(np.float32).tocsr()
+    for frac in (0.01, 0.05, 0.5, 0.9):
+        keep = rng.random(400) >= frac
+        ip, ind, dat = _subgraph(W.indptr, W.indices, W.data, keep)
+        ref = W[keep][:, keep].tocsr()  # rows in column order, as W's: the copy keeps it
+        assert np.array_equal(ip, ref.indptr) and np.array_equal(ind, ref.indices)
+        assert np.array_equal(dat, ref.data) and ind.dtype == W.indices.dtype
+
+
+def test_dense_block_of_every_row_equals_the_diverted_path():
+    """With every row active the dense block is written in place, row by row; it equals the
+    numpy reference (w on edges, -d elsewhere, 1 on the diagonal) bit for bit."""
+    from graffmatch.association.clipper import _dense_block
+
+    rng = np.random.default_rng(12)
+    W = planted_graph(200, 25, 0.3, rng).astype(np.float32).tocsr()
+    A = W.toarray()
+    d = 0.61
+    ref = np.where(A != 0, A, np.float32(-d)).astype(np.float32)
+    np.fill_diagonal(ref, 1.0)
+    block = _dense_block(W.indptr, W.indices, W.data, np.arange(200), d, np.empty(200 * 200, np.float32))
+    assert np.array_equal(block, ref)
