@@ -118,29 +118,33 @@ def cell_minimum_ranges(points: NDArray, az_deg: float = 1.0, el_deg: float = 1.
     na, ne = int(round(360.0 / az_deg)), int(round(180.0 / el_deg))
     P = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
     img = np.full((na, ne), np.inf, dtype=np.float32)
-    # the azimuth cells as _cells computes them (numpy's vectorised arctan2 beats a compiled
-    # scalar one); elevation cell e holds the angles in [-90 + e el, -90 + (e+1) el): counting
-    # the boundaries a point lies on or above (z >= r tan b) needs no arctan2
+    # the azimuth cells as _cells computes them from numpy's (vectorised) arctan2, the rest of
+    # the formula in the compiled pass; elevation cell e holds the angles in
+    # [-90 + e el, -90 + (e+1) el): counting the boundaries a point lies on or above
+    # (z >= r tan b) needs no arctan2
     with np.errstate(invalid="ignore"):
-        a = np.floor((np.degrees(np.arctan2(P[:, 1], P[:, 0])) + 180.0) / az_deg)
-    a = np.where(np.isfinite(a), a, 0.0).astype(np.int64) % na
+        ang = np.arctan2(P[:, 1], P[:, 0])
     tan_edges = np.tan(np.radians(-90.0 + np.arange(1, ne) * el_deg))
-    _cell_minima(P, a, float(el_deg), tan_edges, img)
+    _cell_minima(P, ang, float(az_deg), float(el_deg), tan_edges, img)
     return img
 
 
 @nb.njit(cache=True)
-def _cell_minima(P: NDArray[np.float64], a: NDArray[np.int64], el_deg: float, tan_edges: NDArray[np.float64],
-                 img: NDArray[np.float32]) -> None:
-    """The compiled part of :func:`cell_minimum_ranges`: the elevation cells of :func:`_cells`
-    (non-finite points skipped; a binary search of the boundaries' tangents, the angle itself
-    straight up, straight down and at the sensor), each cell lowered to its nearest return."""
-    ne = img.shape[1]
+def _cell_minima(P: NDArray[np.float64], ang: NDArray[np.float64], az_deg: float, el_deg: float,
+                 tan_edges: NDArray[np.float64], img: NDArray[np.float32]) -> None:
+    """The compiled part of :func:`cell_minimum_ranges`: the azimuth cells of :func:`_cells` from
+    the angles ``ang`` (numpy's ``floor((degrees(ang) + 180) / az_deg)``, non-finite -> 0, modulo
+    the cells), the elevation cells of :func:`_cells` (non-finite points skipped; a binary
+    search of the boundaries' tangents, the angle itself straight up, straight down and at the
+    sensor), each cell lowered to its nearest return."""
+    na, ne = img.shape
     to_deg = 180.0 / np.pi
     for p in range(P.shape[0]):
         x, y, z = P[p, 0], P[p, 1], P[p, 2]
         if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
             continue
+        af = np.floor((ang[p] * to_deg + 180.0) / az_deg)
+        ai = (int(af) if np.isfinite(af) else 0) % na
         r = np.sqrt(x * x + y * y)
         if not np.isfinite(r):  # |x|, |y| > 1e154: the squares overflow
             r = np.hypot(x, y)
@@ -155,8 +159,8 @@ def _cell_minima(P: NDArray[np.float64], a: NDArray[np.int64], el_deg: float, ta
             e = lo
         else:
             e = min(max(int(np.floor((np.arctan2(z, r) * to_deg + 90.0) / el_deg)), 0), ne - 1)
-        if r < img[a[p], e]:
-            img[a[p], e] = r
+        if r < img[ai, e]:
+            img[ai, e] = r
 
 
 def _empty_image(points: NDArray, az_deg: float, el_deg: float) -> tuple[NDArray[np.float64], tuple | None]:

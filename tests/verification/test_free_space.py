@@ -4,6 +4,7 @@ points behind it (occluded) or in cells without a return (unknown) do not."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -187,3 +188,44 @@ def test_whole_scan_cell_minima_at_the_poles_origin_and_far_out() -> None:
         warnings.simplefilter("ignore", RuntimeWarning)  # float32 of 1e200 ranges: inf, in both
         want = RangeImage._from_points_reference(P, 1.0, 1.0, 0).ranges.astype(np.float32)
     np.testing.assert_array_equal(cell_minimum_ranges(P), want)
+
+
+def _cell_minima_reference(P: np.ndarray, az: float, el: float) -> np.ndarray:
+    """numpy specification of cell_minimum_ranges: the azimuth cell of ``_cells``, the elevation
+    cell as the number of boundaries the point lies on or above (z >= r tan b; arctan2 straight
+    up, down and at the sensor), the nearest horizontal range per cell, finite points only."""
+    na, ne = int(round(360.0 / az)), int(round(180.0 / el))
+    P = P[np.isfinite(P).all(axis=1)]
+    with np.errstate(invalid="ignore", over="ignore"):
+        a = np.floor((np.degrees(np.arctan2(P[:, 1], P[:, 0])) + 180.0) / az)
+        r = np.sqrt(P[:, 0] * P[:, 0] + P[:, 1] * P[:, 1])
+    a = np.where(np.isfinite(a), a, 0.0).astype(np.int64) % na
+    r = np.where(np.isfinite(r), r, np.hypot(P[:, 0], P[:, 1]))
+    tan_edges = np.tan(np.radians(-90.0 + np.arange(1, ne) * el))
+    with np.errstate(invalid="ignore", over="ignore"):
+        e = (P[:, 2, None] >= r[:, None] * tan_edges[None]).sum(axis=1)
+    at = np.clip(np.floor((np.degrees(np.arctan2(P[:, 2], r)) + 90.0) / el).astype(np.int64), 0, ne - 1)
+    e = np.where(r > 0, e, at)
+    img = np.full((na, ne), np.inf, np.float32)
+    np.minimum.at(img, (a, e), r.astype(np.float32))
+    return img
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_cell_minimum_ranges_equal_their_numpy_specification(seed: int) -> None:
+    """Bit for bit, on clouds with NaN/inf rows, points on the azimuth and elevation boundaries,
+    at the sensor, straight up/down and far out (squares that overflow)."""
+    from graffmatch.verification.free_space import cell_minimum_ranges
+
+    rng = np.random.default_rng(seed)
+    for scale in (1e-3, 1.0, 30.0, 1e160):
+        n = 3000
+        P = rng.normal(size=(n, 3)) * scale
+        P[:200, :2] = np.round(P[:200, :2])  # axis directions, exact 45 deg
+        P[200:210] = [[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, 0.0, 0.0], [-0.0, 0.0, 2.0], [0.0, -0.0, 3.0],
+                      [-0.0, -0.0, 1.0], [np.nan, 1.0, 0.0], [np.inf, 0.0, 1.0], [1.0, -np.inf, 0.0], [2.0, 1.0, np.nan]]
+        t = np.tan(np.radians(-90.0 + rng.integers(1, 180, 300)))
+        P[300:600, 2] = np.hypot(P[300:600, 0], P[300:600, 1]) * t  # on (or next to) elevation boundaries
+        for az, el in ((1.0, 1.0), (2.0, 0.5), (0.7, 3.0)):
+            got = cell_minimum_ranges(P, az, el)
+            np.testing.assert_array_equal(got.view(np.uint32), _cell_minima_reference(P, az, el).view(np.uint32))
