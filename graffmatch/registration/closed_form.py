@@ -271,6 +271,23 @@ def _register_batch_reference(
         R, _S = _kabsch_batch(correlation(signs))
         signs = _assign_signs(R, ds, dt, g, is_dir)
     R, S = _kabsch_batch(correlation(signs))
+    return _reference_tail(R, S, signs, g, w, ts, ds, dt, bs, bt, G, wsum_g, has_dir, i1, used_pos, inv,
+                           kappa_max, line_anchor_weight, weak_ratio, upright_min)
+
+
+def _reference_tail(R: Array, S: Array, signs: Array, g: NDArray[np.int64], w: Array, ts: NDArray,
+                    ds: Array, dt: Array, bs: Array, bt: Array, G: int, wsum_g: Array,
+                    has_dir: NDArray[np.bool_], i1: NDArray[np.int64], used_pos: NDArray[np.bool_],
+                    inv: NDArray[np.int64], kappa_max: float, line_anchor_weight: float,
+                    weak_ratio: float, upright_min: float) -> BatchRegistration:
+    """The reference from the refined rotations on: translations, costs, the candidate chosen
+    per group, conditioning and residuals. Inputs are group-sorted (``inv`` restores the input
+    order); R (C, G, 3, 3), S (C, G, 3) and signs (C, k) are the candidates' Kabsch results.
+    Shared by :func:`_register_batch_reference` and :func:`_solve_exactly`, so both compute the
+    same numbers from the same rotations."""
+    C, k = R.shape[0], len(g)
+    is_dir = ts > 0
+    is_line = ts == LandmarkType.LINE
 
     # Translation: normal equations sum M_i t = sum M_i r_i with M_i the row space of each type.
     eye = np.eye(3)
@@ -600,10 +617,13 @@ def _register_kernel(bounds: NDArray[np.int64], w: Array, ts: NDArray[np.int64],
                      weak_ratio: float, upright_min: float, R_out: Array, t_out: Array, S_out: Array,
                      lam_out: Array,
                      cost_out: Array, used_pos: NDArray[np.bool_], signs_out: Array, ang_out: Array,
-                     off_out: Array, fragile: NDArray[np.int64]) -> None:
+                     off_out: Array, fragile: NDArray[np.int64], seeds_out: NDArray[np.int64],
+                     centred_out: NDArray[np.bool_]) -> None:
     """Per group (rows bounds[g]..bounds[g+1] of the group-sorted inputs): the reference's
     algorithm, writing the selected candidate's results and the group's fragility (bits of
-    :data:`FRAGILE_REASONS`, 0 when the result does not hang on rounding)."""
+    :data:`FRAGILE_REASONS`, 0 when the result does not hang on rounding); for
+    :func:`_solve_exactly`, the seed pair (sorted rows, -1 if none) and whether centred points
+    or line positions entered the correlation."""
     G = len(bounds) - 1
     combos = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
     H = np.empty((3, 3))
@@ -702,6 +722,7 @@ def _register_kernel(bounds: NDArray[np.int64], w: Array, ts: NDArray[np.int64],
                         mask[i - lo] = False
                 _centred(lo, hi, mask, w, ps, pt, lo, cs, ct, cw)
         used_pos[gi] = used
+        centred_out[gi] = used or n_pt >= 3
         # seed pair: the two most independent weighted directions
         i1 = -1
         i2 = -1
@@ -749,6 +770,8 @@ def _register_kernel(bounds: NDArray[np.int64], w: Array, ts: NDArray[np.int64],
                         ambiguous = True
             if ambiguous:
                 frag |= 4
+        seeds_out[gi, 0] = i1
+        seeds_out[gi, 1] = i2
         signs[:, :n] = 1.0
         if i1 >= 0:
             for c in range(4):
@@ -1190,10 +1213,12 @@ def _register_batch_numba(
     ang = np.empty(k)
     off = np.empty(k)
     reasons = np.zeros(G, np.int64)
+    seeds = np.full((G, 2), -1, np.int64)
+    centred = np.zeros(G, np.bool_)
     _register_kernel(
         bounds, ws, tso, ds, dt, bs, bt,
         float(parallel_spread), float(line_anchor_weight), float(weak_ratio), float(upright_min),
-        R, t, S, lam, cost, used_pos, signs, ang, off, reasons,
+        R, t, S, lam, cost, used_pos, signs, ang, off, reasons, seeds, centred,
     )
     T, kappa, k_rot, k_tr, rot_rank, tr_rank, degenerate = _finish_batch(R, t, S, lam, float(kappa_max), reasons)
     fragile = reasons != 0
@@ -1204,10 +1229,112 @@ def _register_batch_numba(
         angle_residuals_deg=_unsort(ang, order), offset_residuals=_unsort(off, order),
         signs=_unsort(signs, order),
     )
+    frag_idx = np.flatnonzero(fragile)
+    if len(frag_idx) == 1 and not reasons[frag_idx[0]] & 7 and not centred[frag_idx[0]]:
+        # one fragile group whose parallel test and seed pair the kernel shares with the
+        # reference: the reference's own arithmetic from there on, without its numpy overheads
+        gi = int(frag_idx[0])
+        lo, hi = int(bounds[gi]), int(bounds[gi + 1])
+        sub = _solve_exactly(ws[lo:hi], tso[lo:hi], ds[lo:hi], dt[lo:hi], bs[lo:hi], bt[lo:hi],
+                             int(seeds[gi, 0]) - lo, int(seeds[gi, 1]) - lo, kappa_max,
+                             line_anchor_weight, weak_ratio, upright_min)
+        if sub is not None:
+            _write_group(out, sub, gi, order[lo:hi])
+            fragile[gi] = False
     if fragile.any():
         _solve_by_reference(out, source, target, A, g, w, G, fragile, kappa_max,
                             parallel_spread, line_anchor_weight, weak_ratio, upright_min)
     return out, reasons
+
+
+#: |dt . R ds| at or below this: :func:`_solve_exactly` leaves the group to the reference (the
+#: sign of a dot product of unit vectors computed in another order is certain above ~1e-15).
+_EXACT_DOT_MIN = 1e-9
+
+
+def _solve_exactly(w: Array, ts: NDArray[np.int64], ds: Array, dt: Array, bs: Array, bt: Array,
+                   i1: int, i2: int, kappa_max: float, line_anchor_weight: float, weak_ratio: float,
+                   upright_min: float) -> BatchRegistration | None:
+    """What :func:`_register_batch_reference` returns for this one group (rows group-sorted, as
+    the reference sorts them), bit for bit, at a fraction of its numpy calls: for a group
+    without centred points or line positions whose seed pair (``i1``, ``i2``; negative: no
+    directions) the kernel found robustly. The rank-deficient Kabsch steps whose arbitrary
+    choices only LAPACK reproduces go through the reference's own :func:`_kabsch_batch` on
+    the same (4, 1, 3, 3) correlations (summed in the reference's order by
+    :func:`_correlation_exact`), the rest through :func:`_reference_tail`. None when a sign
+    hangs on rounding (then the reference decides it)."""
+    k = len(w)
+    g = np.zeros(k, np.int64)
+    is_dir = ts > 0
+    has_dir = np.array([i1 >= 0])
+    i1a = np.array([max(i1, 0)], np.int64)
+    i2a = np.array([max(i2, 0)], np.int64)
+    combos = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, 1.0], [-1.0, -1.0]])
+    if has_dir[0]:
+        Hs = (combos[:, None, 0, None, None] * ds[i1a][None, :, :, None] * dt[i1a][None, :, None, :]
+              + combos[:, None, 1, None, None] * ds[i2a][None, :, :, None] * dt[i2a][None, :, None, :])
+        signs, ok = _signs_exact(_kabsch_batch(Hs)[0], ds, dt, is_dir, _EXACT_DOT_MIN)
+        if not ok:
+            return None
+    else:
+        signs = np.ones((4, k))
+    for _ in range(2):
+        R, _S = _kabsch_batch(_correlation_exact(signs, w, is_dir, ds, dt))
+        signs, ok = _signs_exact(R, ds, dt, is_dir, _EXACT_DOT_MIN)
+        if not ok:
+            return None
+    R, S = _kabsch_batch(_correlation_exact(signs, w, is_dir, ds, dt))
+    wsum_g = np.bincount(g, weights=w, minlength=1)
+    return _reference_tail(R, S, signs, g, w, ts, ds, dt, bs, bt, 1, wsum_g, has_dir, i1a,
+                           np.zeros(1, np.bool_), np.arange(k), kappa_max, line_anchor_weight,
+                           weak_ratio, upright_min)
+
+
+@nb.njit(cache=True)
+def _correlation_exact(signs: Array, w: Array, is_dir: NDArray[np.bool_], ds: Array, dt: Array) -> Array:
+    """(C, 1, 3, 3) correlations of one group without centred rows, as the reference's
+    ``correlation`` computes them: each term ``((w is_dir) v) dt + (0 0) 0`` (its zero centred
+    term included: it turns -0.0 into 0.0), summed in row order from 0.0 like ``np.bincount``."""
+    C, k = signs.shape
+    H = np.zeros((C, 1, 3, 3))
+    zero = 0.0
+    for c in range(C):
+        for i in range(k):
+            wd = w[i] * (1.0 if is_dir[i] else 0.0)
+            for a in range(3):
+                v = ds[i, a] * signs[c, i] if is_dir[i] else 0.0
+                for b in range(3):
+                    H[c, 0, a, b] += (wd * v) * dt[i, b] + (zero * zero) * zero
+    return H
+
+
+@nb.njit(cache=True)
+def _signs_exact(R: Array, ds: Array, dt: Array, is_dir: NDArray[np.bool_], dot_min: float) -> tuple:
+    """The reference's ``_assign_signs`` for one group (R (C, 1, 3, 3)), and False when a dot
+    is within ``dot_min`` of zero (where another summation order could flip the sign)."""
+    C, k = R.shape[0], ds.shape[0]
+    s = np.ones((C, k))
+    ok = True
+    for c in range(C):
+        for i in range(k):
+            if not is_dir[i]:
+                continue
+            d = 0.0
+            for a in range(3):
+                d += dt[i, a] * ((R[c, 0, a, 0] * ds[i, 0] + R[c, 0, a, 1] * ds[i, 1]) + R[c, 0, a, 2] * ds[i, 2])
+            if abs(d) <= dot_min:
+                ok = False
+            s[c, i] = -1.0 if d < 0 else 1.0
+    return s, ok
+
+
+def _write_group(out: BatchRegistration, sub: BatchRegistration, gi: int, rows: NDArray[np.int64]) -> None:
+    """Group ``gi`` of ``out`` (and its associations ``rows``, input order) from a one-group result."""
+    for name in ("T_target_source", "kappa", "kappa_rotation", "kappa_translation", "degenerate",
+                 "rotation_rank", "translation_rank", "cost", "used_line_positions"):
+        getattr(out, name)[gi] = getattr(sub, name)[0]
+    for name in ("angle_residuals_deg", "offset_residuals", "signs"):
+        getattr(out, name)[rows] = getattr(sub, name)
 
 
 def _solve_by_reference(out: BatchRegistration, source: LandmarkSet, target: LandmarkSet,

@@ -234,3 +234,84 @@ def test_directions_cache_follows_bases_changed_in_place():
     fresh = cf._register_batch_reference(sc.source, sc.target, A).T_target_source[0]
     np.testing.assert_allclose(after[:3, :3], fresh[:3, :3], atol=1e-9)
     assert np.abs(after[:3, :3] - before[:3, :3]).max() > 1e-3
+
+
+_FIELDS = ("T_target_source", "kappa", "kappa_rotation", "kappa_translation", "degenerate", "rotation_rank",
+           "translation_rank", "cost", "used_line_positions", "angle_residuals_deg", "offset_residuals", "signs")
+
+
+def _bit_equal(a: cf.BatchRegistration, b: cf.BatchRegistration) -> list[str]:
+    """Fields of two results that differ in any bit."""
+    return [f for f in _FIELDS if np.asarray(getattr(a, f)).tobytes() != np.asarray(getattr(b, f)).tobytes()]
+
+
+def _near_parallel_pair(rng, n: int, spread: float, types: np.ndarray) -> tuple[LandmarkSet, LandmarkSet]:
+    base = rng.normal(size=3)
+    dirs = (base / np.linalg.norm(base) + spread * rng.normal(size=(n, 3))) * rng.choice([-1.0, 1.0], (n, 1))
+    tgt = LandmarkSet.from_arrays(types, dirs, rng.uniform(-30, 30, (n, 3)))
+    src = tgt.transform(np.linalg.inv(random_transform(rng, 20.0)))
+    src = LandmarkSet.from_arrays(src.types, src.directions + rng.normal(0, 1e-3, (n, 3)),
+                                  src.anchors + rng.normal(0, 0.05, (n, 3)))
+    return src, tgt
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_exact_path_equals_the_reference_bit_for_bit(seed: int) -> None:
+    """_solve_exactly (the reference's arithmetic without its numpy overheads, for one group
+    without centred rows) gives the reference's result in every bit, on groups of planes and
+    lines from parallel (rank-deficient correlations) to spread directions; and register_batch
+    on one rank-deficient group (FRAGILE_REASONS 32), which takes that path, too."""
+    rng = np.random.default_rng(seed)
+    n_exact = n_fragile = 0
+    for it in range(60):
+        n = 10
+        types = [np.full(n, 2), np.ones(n, np.int64), rng.integers(1, 3, n)][it % 3]
+        spread = [0.0, 1e-9, 1e-6, 1e-3, 0.05, 1.0][it % 6]
+        src, tgt = _near_parallel_pair(rng, n, spread, types)
+        m = int(rng.integers(1, 7))
+        i = rng.choice(n, m)
+        j = np.array([rng.choice(np.flatnonzero(tgt.types == src.types[x])) if rng.random() < 0.3 else x for x in i])
+        A = np.stack([i, j], 1)
+        w = None if it % 2 else rng.uniform(0.1, 3.0, m)
+        ref = cf._register_batch_reference(src, tgt, A, None, w, 1e3, 1)
+        ww = np.ones(m) if w is None else w
+        ds, dt = cf._directions_of(src)[i], cf._directions_of(tgt)[j]
+        ts = src.types[i].astype(np.int64)
+        bs, bt = src.anchors[i].astype(float), tgt.anchors[j].astype(float)
+        reasons, seeds, centred = np.zeros(1, np.int64), np.full((1, 2), -1, np.int64), np.zeros(1, np.bool_)
+        cf._register_kernel(np.array([0, m]), ww, ts, ds, dt, bs, bt, 0.03, 0.01, 1e-2, cf.UPRIGHT_MIN,
+                            np.empty((1, 3, 3)), np.empty((1, 3)), np.zeros((1, 3)), np.zeros((1, 3)), np.zeros(1),
+                            np.zeros(1, np.bool_), np.empty(m), np.empty(m), np.empty(m), reasons, seeds, centred)
+        if not reasons[0] & 7 and not centred[0]:
+            sub = cf._solve_exactly(ww, ts, ds, dt, bs, bt, int(seeds[0, 0]), int(seeds[0, 1]), 1e3, 0.01, 1e-2,
+                                    cf.UPRIGHT_MIN)
+            if sub is not None:
+                n_exact += 1
+                assert _bit_equal(sub, ref) == [], (it, reasons)
+        out, r = cf._register_batch_numba(src, tgt, A, None, w, 1e3, None, 0.03, 0.01, 1e-2)
+        if r[0]:
+            n_fragile += 1
+            assert _bit_equal(out, ref) == [], (it, r)
+    assert n_exact >= 20 and n_fragile >= 5, (n_exact, n_fragile)
+
+
+def test_parallel_planes_take_the_exact_path() -> None:
+    """Three near-parallel planes (a KITTI street's walls): the correlation is rank-deficient
+    (reason 32 alone), register_batch solves the group without the numpy reference and returns
+    the reference's result bit for bit."""
+    n = np.array([[-0.0365, 0.9987, -0.0349], [0.0491, -0.9978, 0.0437], [0.043, -0.9989, 0.0192]])
+    tgt = LandmarkSet.from_arrays(np.full(3, 2), n, np.array([[3.0, 8.0, 0.5], [-4.0, -7.5, 1.0], [10.0, -8.2, 0.2]]))
+    src = tgt.transform(np.linalg.inv(random_transform(np.random.default_rng(1), 5.0)))
+    src = LandmarkSet.from_arrays(src.types, src.directions + 1e-3 * np.eye(3)[[0, 2, 1]], src.anchors)
+    A = np.stack([np.arange(3)] * 2, 1)
+    _, reasons = cf._register_batch_numba(src, tgt, A, None, None, 1e3, None, 0.03, 0.01, 1e-2)
+    assert reasons.tolist() == [32]
+    called = []
+    orig = cf._register_batch_reference
+    cf._register_batch_reference = lambda *a, **k: called.append(1) or orig(*a, **k)
+    try:
+        out = cf.register_batch(src, tgt, A)
+    finally:
+        cf._register_batch_reference = orig
+    assert called == []
+    assert _bit_equal(out, orig(src, tgt, A, None, None, 1e3, 1)) == []
