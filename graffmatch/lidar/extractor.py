@@ -75,23 +75,53 @@ def _finite_absmax(A):
     return bad, m
 
 
+#: Relative margin of :func:`_crop`'s borderline rows: far above the few ulps by which two
+#: evaluations of |p|^2 (and sqrt, and squaring the bounds) can differ.
+_CROP_MARGIN = 1e-9
+
+
 @nb.njit(cache=True)
 def _crop(A, rmin2, rmax2):
-    """float64 xyz of the rows with rmin2 <= |p|^2 <= rmax2, and their indices."""
+    """float64 xyz of the rows with rmin2 <= |p|^2 <= rmax2, their indices, and how many kept
+    rows lie within a relative :data:`_CROP_MARGIN` of either bound (only those can fail the
+    caller's sqrt-then-compare test: none means every kept row passes it)."""
     n = A.shape[0]
     keep = np.empty(n, np.int64)
+    lo = rmin2 * (1.0 + _CROP_MARGIN)
+    hi = rmax2 * (1.0 - _CROP_MARGIN)
     m = 0
+    border = 0
     for i in range(n):
         x, y, z = np.float64(A[i, 0]), np.float64(A[i, 1]), np.float64(A[i, 2])
         r2 = x * x + y * y + z * z
         if rmin2 <= r2 <= rmax2:
             keep[m] = i
             m += 1
+            if not (lo < r2 < hi):
+                border += 1
     P = np.empty((m, 3))
     for k in range(m):
         i = keep[k]
         P[k, 0], P[k, 1], P[k, 2] = A[i, 0], A[i, 1], A[i, 2]
-    return P, keep[:m].copy()
+    return P, keep[:m].copy(), border
+
+
+@nb.njit(cache=True)
+def _plane_points(P, is_ground, max_range2):
+    """The rows of ``P`` (float64) that are not ground and within ``max_range2`` horizontally
+    (x^2 + y^2, the same products and sum as numpy's), in order: ``P[keep]`` in one pass."""
+    n = P.shape[0]
+    m = 0
+    for i in range(n):
+        if not is_ground[i] and P[i, 0] * P[i, 0] + P[i, 1] * P[i, 1] <= max_range2:
+            m += 1
+    Q = np.empty((m, 3))
+    k = 0
+    for i in range(n):
+        if not is_ground[i] and P[i, 0] * P[i, 0] + P[i, 1] * P[i, 1] <= max_range2:
+            Q[k, 0], Q[k, 1], Q[k, 2] = P[i, 0], P[i, 1], P[i, 2]
+            k += 1
+    return Q
 
 
 def units_hint(extent: float) -> str | None:
@@ -248,12 +278,14 @@ class LandmarkExtractor:
             if bad == 0 and amax <= small:
                 self._n_finite = int(arr.shape[0])
                 rmax = np.inf if cfg.max_range is None else cfg.max_range
-                # The same float64 comparison as the general path below (sqrt then compare).
-                P, keep = _crop(arr, cfg.min_range**2, rmax**2)
-                r = np.sqrt(np.einsum("ij,ij->i", P, P))
-                ok = (r >= cfg.min_range) & (r <= rmax)
-                if not ok.all():
-                    P, keep = P[ok], keep[ok]
+                # The same float64 comparison as the general path below (sqrt then compare),
+                # needed only for rows within rounding of a bound (every other kept row passes)
+                P, keep, border = _crop(arr, cfg.min_range**2, rmax**2)
+                if border:
+                    r = np.sqrt(np.einsum("ij,ij->i", P, P))
+                    ok = (r >= cfg.min_range) & (r <= rmax)
+                    if not ok.all():
+                        P, keep = P[ok], keep[ok]
                 return P, (None if lab is None else lab[keep]), np.zeros(3)
         P = arr[:, :3].astype(np.float64)
         # NaN/Inf propagate through the sum; cheaper than a reduce over the length-3 axis.
@@ -379,15 +411,14 @@ class LandmarkExtractor:
         t, c = time.perf_counter(), time.process_time()
         planes = None
         if cfg.planes.enabled and planar_ok:
-            keep = ~is_ground
-            if cfg.planes.max_range is not None:
-                keep &= P[:, 0] ** 2 + P[:, 1] ** 2 <= cfg.planes.max_range**2
+            mr = cfg.planes.max_range
+            Q = _plane_points(P, is_ground, np.inf if mr is None else mr**2)
             if cfg.planes.detector == "voxel":
-                grid = build_voxel_grid(P[keep], cfg.planes.voxel_size)
+                grid = build_voxel_grid(Q, cfg.planes.voxel_size)
                 planes, cloud = voxel_planes(grid, cfg.planes)
                 self.last_cloud = cloud.shifted(offset) if np.any(offset) else cloud
             else:
-                planes = extract_planes(P[keep], cfg.planes)
+                planes = extract_planes(Q, cfg.planes)
             if ground is not None and ground.normal is not None and ground.centroid is not None:
                 planes = drop_ground_duplicates(planes, ground.normal, ground.centroid, cfg.planes)
         timings["planes"] = time.perf_counter() - t

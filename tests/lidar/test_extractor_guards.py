@@ -140,3 +140,26 @@ def test_absurdly_far_points_are_dropped_not_overflowed(rng) -> None:
     with pytest.warns(RuntimeWarning, match="dropped 5 of"):
         out = LandmarkExtractor().extract(utm)
     assert out.counts()["planes"] >= 4
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_range_crop_is_the_sqrt_then_compare_definition(dtype) -> None:
+    """The compiled crop keeps exactly the rows with min_range^2 <= x^2 + y^2 + z^2 <=
+    max_range^2 and min_range <= sqrt(...) <= max_range as numpy computes them (einsum, sqrt),
+    also on the bounds and within rounding of them (those rows alone take the numpy test)."""
+    ex = LandmarkExtractor()
+    lo, hi = ex.config.min_range, ex.config.max_range
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    radii = np.concatenate([rng.uniform(0, 100, 2000), np.repeat([lo, hi], 500),
+                            np.repeat([lo, hi], 500) * (1 + rng.integers(-4, 5, 1000) * 2.0**-52)])
+    pts = (d * radii[:, None]).astype(dtype)
+    pts[:6] = [[lo, 0, 0], [0, -hi, 0], [0, 0, lo], [hi, 0, 0], [0, lo, 0], [0, 0, -hi]]
+    P, _, _ = ex._validate(pts, None)
+    P64 = pts.astype(np.float64)
+    r2 = P64[:, 0] * P64[:, 0] + P64[:, 1] * P64[:, 1] + P64[:, 2] * P64[:, 2]
+    r = np.sqrt(np.einsum("ij,ij->i", P64, P64))
+    want = P64[(r2 >= lo**2) & (r2 <= hi**2) & (r >= lo) & (r <= hi)]
+    assert 0 < len(want) < len(pts)
+    np.testing.assert_array_equal(P, want)
