@@ -433,9 +433,8 @@ class LandmarkExtractor:
         if ground_ok:
             assert ground is not None
             sup = ground.plane_inliers
-            gpts = P[sup]
-            # PCA box of the ground support, in the plane.
-            q = gpts - ground.centroid
+            # PCA box of the ground support, in the plane (its centred points, from the fit).
+            q = ground.centred_inliers if ground.centred_inliers is not None else P[sup] - ground.centroid
             # The in-plane axes need no more than a few thousand points (an even stride).
             _, _, Vt = np.linalg.svd(q[:: max(1, q.shape[0] // 4096)], full_matrices=False)
             uv = q @ Vt[:2].T
@@ -456,7 +455,7 @@ class LandmarkExtractor:
                     "extent": np.array([box[0] * box[1]]),
                     "radius": np.array([np.nan]),
                     "is_ground": np.array([1.0]),
-                    "points": gpts[take],
+                    "points": P[sup[take]],
                     "counts": np.array([take.size]),
                 }
             )

@@ -85,6 +85,31 @@ class GroundResult:
     normal: Array | None  # (3,) unit, z >= 0
     centroid: Array | None  # (3,)
     rms: float
+    #: ``points[plane_inliers] - centroid`` (C-ordered; None without a plane): the extractor's
+    #: ground landmark reuses it instead of gathering and centring the support again.
+    centred_inliers: Array | None = None
+
+
+@nb.njit(cache=True)
+def _centred_rows(P, idx):
+    """(numpy's ``P[idx].mean(axis=0)``, ``P[idx] - mean``) without the gathered copy: the
+    column sums run over the rows in order from the first row, as numpy's axis-0 reduction of
+    a C-ordered array does, then divide by the count."""
+    n = idx.shape[0]
+    s0, s1, s2 = P[idx[0], 0], P[idx[0], 1], P[idx[0], 2]
+    for k in range(1, n):
+        i = idx[k]
+        s0 += P[i, 0]
+        s1 += P[i, 1]
+        s2 += P[i, 2]
+    c = np.array([s0 / n, s1 / n, s2 / n])
+    D = np.empty((n, 3))
+    for k in range(n):
+        i = idx[k]
+        D[k, 0] = P[i, 0] - c[0]
+        D[k, 1] = P[i, 1] - c[1]
+        D[k, 2] = P[i, 2] - c[2]
+    return c, D
 
 
 @nb.njit(cache=True)
@@ -239,11 +264,10 @@ def segment_ground(points: Array, config: GroundConfig) -> GroundResult:
     tilt = np.degrees(np.arccos(np.clip(normal[2], -1.0, 1.0)))
     if tilt > config.max_tilt_deg or sup.size < config.min_support:
         return GroundResult(is_ground, height, np.zeros(0, np.int64), None, None, np.nan)
-    S = P[sup]
-    c = S.mean(axis=0)
-    rms = float(np.sqrt(np.mean(((S - c) @ normal) ** 2)))
+    c, D = _centred_rows(P, sup)  # sup.size >= min_support >= 3
+    rms = float(np.sqrt(np.mean((D @ normal) ** 2)))
     if config.relabel_with_plane:
         # Points below the road (multipath) lower a cell's minimum and leave real road points
         # "above ground"; near the sensor, the fitted plane is the better ground model.
         is_ground = _relabel(P, is_ground, c, normal, config.inlier_threshold, radius2)
-    return GroundResult(is_ground, height, sup, normal, c, rms)
+    return GroundResult(is_ground, height, sup, normal, c, rms, D)
