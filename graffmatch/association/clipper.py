@@ -968,23 +968,6 @@ def _subgraph(indptr, indices, data, keep_mask):
     ip = np.cumsum(counts)
     ind = np.empty(ip[-1] + 1, dtype=indices.dtype)  # + 1: the branch-free copy writes one past a row
     dat = np.empty(ip[-1] + 1, dtype=data.dtype)
-    rows_nnz = 0
-    for v in range(m):
-        if keep_mask[v]:
-            rows_nnz += indptr[v + 1] - indptr[v]
-    if ip[-1] >= 0.9 * rows_nnz:
-        # Nearly every neighbour kept (pruning drops a few vertices): a branch that is almost
-        # always taken is predicted, and the write position no longer waits on keep_mask's load.
-        for v in range(m):
-            if keep_mask[v]:
-                pos = ip[newid[v]]
-                for t in range(indptr[v], indptr[v + 1]):
-                    w = indices[t]
-                    if keep_mask[w]:
-                        ind[pos] = newid[w]
-                        dat[pos] = data[t]
-                        pos += 1
-        return ip, ind[: ip[-1]], dat[: ip[-1]]
     for v in range(m):
         if keep_mask[v]:
             pos = ip[newid[v]]

@@ -283,25 +283,41 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
     return indptr, indices[: indptr[m]], data, wdeg, w_max
 
 
+@nb.njit(cache=True)
+def _affine_layout(lookup, gi, gj, n_groups):
+    """:func:`_affine_ids` compiled (one pass over the n_i x n_j table instead of ~20 numpy
+    temporaries: ~60 us of a 6 ms W1 match). Returns (ok, row_base, col_rank)."""
+    n_i, n_j = gi.shape[0], gj.shape[0]
+    col_rank = np.zeros(n_j, dtype=np.int64)
+    first_b = np.full(n_groups, -1, dtype=np.int64)
+    count = np.zeros(n_groups, dtype=np.int64)
+    for b in range(n_j):
+        t = gj[b]
+        col_rank[b] = count[t]
+        count[t] += 1
+        if first_b[t] < 0:
+            first_b[t] = b
+    row_base = np.zeros(n_i, dtype=np.int64)
+    for a in range(n_i):
+        fb = first_b[gi[a]]
+        if fb >= 0:
+            row_base[a] = lookup[a, fb]
+    for a in range(n_i):
+        for b in range(n_j):
+            if gi[a] == gj[b] and row_base[a] + col_rank[b] != lookup[a, b]:
+                return False, row_base, col_rank
+    return True, row_base, col_rank
+
+
 def _affine_ids(lookup: NDArray, gi: NDArray[np.int64], gj: NDArray[np.int64]
                 ) -> tuple[NDArray[np.int64], NDArray[np.int64]] | tuple[None, None]:
     """(row_base, col_rank) with ``lookup[a, b] = row_base[a] + col_rank[b]`` for every
     same-group pair (col_rank: b's rank within its group), or (None, None) when the vertex
     ids are not laid out that way (e.g. an explicit list in another order)."""
     n_groups = int(max(gi.max(initial=0), gj.max(initial=0))) + 1
-    col_rank = np.zeros(gj.shape[0], dtype=np.int64)
-    first_b = np.full(n_groups, -1, dtype=np.int64)
-    for t in range(n_groups):
-        b = np.flatnonzero(gj == t)
-        col_rank[b] = np.arange(b.size)
-        if b.size:
-            first_b[t] = b[0]
-    fb = first_b[gi]
-    row_base = np.where(fb >= 0, lookup[np.arange(gi.shape[0]), np.maximum(fb, 0)], 0).astype(np.int64)
-    same = gi[:, None] == gj[None, :]
-    if not np.array_equal((row_base[:, None] + col_rank[None, :])[same], lookup[same]):
-        return None, None
-    return row_base, col_rank
+    ok, row_base, col_rank = _affine_layout(lookup, np.ascontiguousarray(gi, dtype=np.int64),
+                                            np.ascontiguousarray(gj, dtype=np.int64), n_groups)
+    return (row_base, col_rank) if ok else (None, None)
 
 
 def build_consistency_graph(

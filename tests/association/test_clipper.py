@@ -597,9 +597,9 @@ def test_start_vector_is_the_generators_draw_and_read_only():
             assert not got.flags.writeable
 
 
-def test_subgraph_copy_paths_are_the_same():
-    """The induced subgraph is the same CSR bit for bit whether few vertices are dropped (the
-    predicted-branch copy) or many (the branch-free copy), against scipy's slicing."""
+def test_subgraph_equals_scipy_slicing():
+    """The induced subgraph is scipy's slicing bit for bit, whether few vertices are dropped
+    (the prune) or many (a shrinking active set)."""
     from graffmatch.association.clipper import _subgraph
 
     rng = np.random.default_rng(4)

@@ -193,3 +193,41 @@ def _lookup_and_groups(g, sc):
     lut = np.full((len(sc.source), len(sc.target)), -1)
     lut[g.associations[:, 0], g.associations[:, 1]] = np.arange(g.m)
     return lut, sc.source.types.astype(np.int64), sc.target.types.astype(np.int64)
+
+
+def test_compiled_affine_layout_equals_the_numpy_definition():
+    """_affine_ids (compiled) gives the numpy definition's row bases and column ranks, and None
+    exactly when some same-group pair's id is not row_base + col_rank."""
+    import graffmatch.association.consistency_graph as cg
+
+    def reference(lookup, gi, gj):
+        n_groups = int(max(gi.max(initial=0), gj.max(initial=0))) + 1
+        col_rank = np.zeros(gj.shape[0], dtype=np.int64)
+        first_b = np.full(n_groups, -1, dtype=np.int64)
+        for t in range(n_groups):
+            b = np.flatnonzero(gj == t)
+            col_rank[b] = np.arange(b.size)
+            if b.size:
+                first_b[t] = b[0]
+        fb = first_b[gi]
+        row_base = np.where(fb >= 0, lookup[np.arange(gi.shape[0]), np.maximum(fb, 0)], 0).astype(np.int64)
+        same = gi[:, None] == gj[None, :]
+        if not np.array_equal((row_base[:, None] + col_rank[None, :])[same], lookup[same]):
+            return None, None
+        return row_base, col_rank
+
+    rng = np.random.default_rng(6)
+    outcomes = set()
+    for trial in range(40):
+        gi, gj = rng.integers(0, 3, rng.integers(2, 30)), rng.integers(0, 3, rng.integers(2, 30))
+        assoc = all_to_all(gi, gj)
+        if trial % 2:
+            assoc = assoc[rng.permutation(len(assoc))]
+        lookup = np.full((gi.size, gj.size), -1, dtype=np.int32)
+        lookup[assoc[:, 0], assoc[:, 1]] = np.arange(len(assoc))
+        got, ref = cg._affine_ids(lookup, gi, gj), reference(lookup, gi, gj)
+        outcomes.add(ref[0] is None)
+        assert (got[0] is None) == (ref[0] is None)
+        if ref[0] is not None:
+            assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
+    assert outcomes == {True, False}
