@@ -207,7 +207,8 @@ def _cell_minima_reference(P: np.ndarray, az: float, el: float) -> np.ndarray:
     at = np.clip(np.floor((np.degrees(np.arctan2(P[:, 2], r)) + 90.0) / el).astype(np.int64), 0, ne - 1)
     e = np.where(r > 0, e, at)
     img = np.full((na, ne), np.inf, np.float32)
-    np.minimum.at(img, (a, e), r.astype(np.float32))
+    with np.errstate(over="ignore"):  # ranges beyond float32 become inf, as in the image
+        np.minimum.at(img, (a, e), r.astype(np.float32))
     return img
 
 
