@@ -43,9 +43,6 @@ class ConsistencyGraph:
     # Row sums of ``data``, set only by :func:`build_consistency_graph`, whose weights are in
     # (0, 1] with no diagonal by construction: the solver then skips its validation pass.
     weighted_degrees: NDArray[np.float64] | None = None
-    # The largest stored weight, set with ``weighted_degrees`` by the builder (the greedy
-    # cliques' bound needs it: a read of every weight fewer, ~10 MB at W2, 170 MB at W3).
-    max_weight: float | None = None
 
     @property
     def m(self) -> int:
@@ -185,8 +182,7 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
     ``keep_windows`` the first pass stores every row's windows for the second (one merge of the
     sorted runs per row instead of two). Also returns the weighted degrees (row sums of the
     stored weights, summed in order as :func:`~graffmatch.association.clipper.solve_clipper`'s
-    validation pass does) and the largest weight, so the solver need not read the graph once
-    more for them.
+    validation pass does), so the solver need not read the graph once more for them.
 
     Non-empty ``row_base`` / ``col_rank``: ``lookup[a2, b2] = row_base[a2] + col_rank[b2]`` for
     every same-group pair (all-to-all in :func:`all_to_all`'s order), so a vertex id is a
@@ -228,7 +224,6 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
     indices = np.empty(indptr[m] + _CHUNK, dtype=index.dtype)  # (+ a chunk: see the affine fill)
     data = np.empty(indptr[m], dtype=weights.dtype)
     wdeg = np.zeros(m)
-    w_max = 0.0
     buf_x = np.empty(longest + _CHUNK)
     buf_w = np.empty(longest)
     for u in range(m):
@@ -276,11 +271,9 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
         s = 0.0
         for t in range(n):
             data[pos + t] = buf_w[t]
-            v = data[pos + t]
-            s += v
-            w_max = max(w_max, v)
+            s += data[pos + t]
         wdeg[u] = s
-    return indptr, indices[: indptr[m]], data, wdeg, w_max
+    return indptr, indices[: indptr[m]], data, wdeg
 
 
 @nb.njit(cache=True)
@@ -379,10 +372,10 @@ def build_consistency_graph(
     row_base, col_rank = _affine_ids(lookup, gi, gj) if all_valid else (None, None)
     if row_base is None:
         row_base = col_rank = np.zeros(0, dtype=np.int64)
-    indptr, indices, data, wdeg, w_max = _build(
+    indptr, indices, data, wdeg = _build(
         D_i, D_j, gi, gj, assoc, lookup, all_valid, float(epsilon), inv2s2, n_groups,
         np.empty(0, dtype=dtype), index, _squarings(float(epsilon), inv2s2),
         m * n_i * 8 <= _MAX_WINDOW_TABLE_BYTES and n_j * n_j < 2**31,  # int32 window ends
         row_base, col_rank,
     )
-    return ConsistencyGraph(assoc, indptr, indices, data, wdeg, float(w_max))
+    return ConsistencyGraph(assoc, indptr, indices, data, wdeg)
