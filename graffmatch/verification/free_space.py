@@ -134,29 +134,39 @@ def _cell_minima(P: NDArray[np.float64], ang: NDArray[np.float64], az_deg: float
                  tan_edges: NDArray[np.float64], img: NDArray[np.float32]) -> None:
     """The compiled part of :func:`cell_minimum_ranges`: the azimuth cells of :func:`_cells` from
     the angles ``ang`` (numpy's ``floor((degrees(ang) + 180) / az_deg)``, non-finite -> 0, modulo
-    the cells), the elevation cells of :func:`_cells` (non-finite points skipped; a binary
-    search of the boundaries' tangents, the angle itself straight up, straight down and at the
-    sensor), each cell lowered to its nearest return."""
+    the cells), the elevation cells of :func:`_cells` (non-finite points skipped; the number of
+    boundaries the point lies on or above, z >= r tan b, which holds for a prefix of the
+    ascending boundaries: so the previous point's count, confirmed by its two neighbouring
+    boundaries, is the count (consecutive returns of a ring share it), else a binary search;
+    the angle itself straight up, straight down and at the sensor), each cell lowered to its
+    nearest return."""
     na, ne = img.shape
+    n_edges = tan_edges.shape[0]
     to_deg = 180.0 / np.pi
+    e_prev = 0
     for p in range(P.shape[0]):
         x, y, z = P[p, 0], P[p, 1], P[p, 2]
         if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
             continue
         af = np.floor((ang[p] * to_deg + 180.0) / az_deg)
-        ai = (int(af) if np.isfinite(af) else 0) % na
+        ai = int(af) if np.isfinite(af) else 0
+        if ai < 0 or ai >= na:  # (an integer division only off the usual range)
+            ai %= na
         r = np.sqrt(x * x + y * y)
         if not np.isfinite(r):  # |x|, |y| > 1e154: the squares overflow
             r = np.hypot(x, y)
         if r > 0.0:
-            lo, hi = 0, tan_edges.shape[0]
-            while lo < hi:
-                mid = (lo + hi) >> 1
-                if z >= r * tan_edges[mid]:
-                    lo = mid + 1
-                else:
-                    hi = mid
-            e = lo
+            e = e_prev
+            if not ((e == 0 or z >= r * tan_edges[e - 1]) and (e == n_edges or not z >= r * tan_edges[e])):
+                lo, hi = 0, n_edges
+                while lo < hi:
+                    mid = (lo + hi) >> 1
+                    if z >= r * tan_edges[mid]:
+                        lo = mid + 1
+                    else:
+                        hi = mid
+                e = lo
+            e_prev = e
         else:
             e = min(max(int(np.floor((np.arctan2(z, r) * to_deg + 90.0) / el_deg)), 0), ne - 1)
         if r < img[ai, e]:
