@@ -82,7 +82,8 @@ def replay(records: dict[int, dict], vcfg) -> list:
                 continue
             T = np.asarray(c["T"], float).reshape(4, 4)
             conf = loop_confidence(bool(c["matcher_valid"]), c["matcher_confidence"], int(c["n_agreeing"]),
-                                   float(c["overlap"]), float(np.linalg.norm(T[:3, 3])), vcfg)
+                                   float(c["overlap"]), float(np.linalg.norm(T[:3, 3])), vcfg,
+                                   bool(c.get("on_points", False)))
             seen.append((conf, -c["rank"], c["match"], T))
             if conf >= vcfg.min_confidence:
                 break

@@ -76,6 +76,10 @@ def loops(
     place_margin: Annotated[
         float | None, typer.Option(min=0, help="With --place-radius: the estimate's safety margin (m).")
     ] = None,
+    evidence_points_below: Annotated[
+        int | None,
+        typer.Option(min=0, help="Scans with fewer landmarks keep their evidence points in the database (0: none)."),
+    ] = None,
     optimize: Annotated[bool, typer.Option(help="Pose graph with GTSAM; KITTI/TUM trajectories, ATE/RPE.")] = False,
     odometry: Annotated[
         str, typer.Option(help="Odometry for --optimize/radius: drift | gt | kiss-icp | PATH (KITTI poses).")
@@ -111,6 +115,8 @@ def loops(
         cfg.verification.max_translation_m = place_radius
     if place_margin is not None:
         cfg.verification.place_margin_m = place_margin
+    if evidence_points_below is not None:
+        cfg.verification.evidence_points_below = evidence_points_below
     cfg.verification.quick_check = quick_check
     cfg.verification.stop_when_accepted = not all_loops
     cfg = LoopDetectorConfig.model_validate(cfg.model_dump())

@@ -4,6 +4,11 @@ A scan's landmarks are stored as one (n, 12) float32 table (type, direction or n
 tangent, anchor, extent, support): about 50 bytes a landmark, 1-3 kB a scan compressed, where
 a raw scan is ~2 MB. Directions are re-orthonormalised on load, so float32 loses nothing the
 matcher can see (1e-7 rad).
+
+A landmark-poor scan may also keep its *evidence cloud* (the voxelised non-ground support points
+the verified matcher scores hypotheses against), quantised to int16 at ``POINT_QUANTUM_M``,
+sorted and delta-coded (modulo 2^16, so decoding is exact): ~2-4 kB for 1,500 points. Landmarks
+alone cannot verify a scan with three or four of them; its points can.
 """
 
 from __future__ import annotations
@@ -20,6 +25,10 @@ from graffmatch.errors import InvalidInputError, MalformedFileError
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 
 COLUMNS = 12
+#: Grid of the stored evidence points [m]: +-2.5 cm, a twelfth of the matcher's 0.3 m inlier gate.
+POINT_QUANTUM_M = 0.05
+#: Coordinates beyond this are dropped from a stored cloud (int16 at 5 cm reaches 1,638 m).
+POINT_MAX_ABS_M = 1600.0
 
 
 def encode_landmarks(ls: LandmarkSet) -> NDArray[np.float32]:
@@ -59,9 +68,46 @@ def decode_landmarks(tab: NDArray) -> LandmarkSet:
     return LandmarkSet(types, bases, tab[:, 7:10].copy(), attrs)
 
 
+def encode_points(points: NDArray, quantum: float = POINT_QUANTUM_M) -> NDArray[np.int16]:
+    """(3, m) int16: the points on a ``quantum`` grid, sorted (x, y, z) and delta-coded along
+    each axis modulo 2^16 (small, repetitive numbers that deflate well; decoding is exact)."""
+    P = np.asarray(points, np.float64).reshape(-1, 3)
+    P = P[np.all(np.isfinite(P), axis=1) & np.all(np.abs(P) <= POINT_MAX_ABS_M, axis=1)]
+    q = np.round(P / quantum).astype(np.int64)
+    q = q[np.lexsort((q[:, 2], q[:, 1], q[:, 0]))]
+    d = np.diff(q, axis=0, prepend=np.zeros((1, 3), np.int64))
+    return np.ascontiguousarray(((d + 2**15) % 2**16 - 2**15).astype(np.int16).T)
+
+
+def decode_points(code: NDArray, quantum: float = POINT_QUANTUM_M) -> NDArray[np.float32]:
+    """Inverse of :func:`encode_points`: (m, 3) float32 on the ``quantum`` grid."""
+    code = np.asarray(code)
+    if code.ndim != 2 or code.shape[0] != 3 or code.dtype != np.int16:
+        raise MalformedFileError(f"point code must be (3, m) int16, got {code.shape} {code.dtype}")
+    q = np.cumsum(code.astype(np.int64), axis=1)
+    q = (q + 2**15) % 2**16 - 2**15
+    return (q.T * quantum).astype(np.float32)
+
+
+def with_evidence_points(ls: LandmarkSet, points: NDArray | None) -> LandmarkSet:
+    """``ls`` carrying ``points`` as its support (all owned by its first landmark; the verified
+    matcher pools every landmark's support into one cloud, so ownership does not matter)."""
+    if points is None or len(ls) == 0:
+        return ls
+    P = np.asarray(points, np.float32).reshape(-1, 3)
+    off = np.full(len(ls) + 1, len(P), np.int64)
+    off[0] = 0
+    return LandmarkSet(ls.types, ls.bases, ls.anchors, ls.attributes, P, off, validate=False,
+                       sensor_pose=ls.sensor_pose)
+
+
 def landmarks_to_bytes(ls: LandmarkSet) -> bytes:
+    """The stored form: the landmark table, and the support points (quantised) when ``ls`` has any."""
     buf = io.BytesIO()
-    np.savez_compressed(buf, landmarks=encode_landmarks(ls))
+    arrays = {"landmarks": encode_landmarks(ls)}
+    if ls.points is not None and len(ls.points):
+        arrays["points"] = encode_points(ls.points)
+    np.savez_compressed(buf, **arrays)
     return buf.getvalue()
 
 
@@ -75,9 +121,14 @@ def load_landmarks(path: str | Path) -> LandmarkSet:
     try:
         with np.load(path, allow_pickle=False) as z:
             tab = z["landmarks"]
+            code = z["points"] if "points" in z.files else None
     except (OSError, ValueError, KeyError, EOFError) as exc:
         raise MalformedFileError(f"{path}: cannot read landmark table ({exc})") from exc
-    return decode_landmarks(tab)
+    try:
+        points = None if code is None else decode_points(code)
+    except MalformedFileError as exc:
+        raise MalformedFileError(f"{path}: {exc}") from exc
+    return with_evidence_points(decode_landmarks(tab), points)
 
 
 @dataclass
@@ -123,7 +174,8 @@ class LandmarkDatabase:
         return np.stack(d)
 
     def bytes_per_scan(self) -> float:
-        """Mean stored size of a scan: its compressed landmark table plus its descriptor."""
+        """Mean stored size of a scan: its compressed landmark table (and evidence points, when
+        kept) plus its descriptor."""
         if not len(self):
             return 0.0
         sizes = [len(landmarks_to_bytes(ls)) for ls in self.landmarks]

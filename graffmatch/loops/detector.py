@@ -19,13 +19,19 @@ from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation.loop_closures import keep_most_salient
 from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.lidar.extractor import LandmarkExtractor, LandmarkExtractorConfig
-from graffmatch.loops.database import LandmarkDatabase
+from graffmatch.loops.database import (
+    LandmarkDatabase,
+    decode_points,
+    encode_points,
+    with_evidence_points,
+)
 from graffmatch.loops.descriptor import DescriptorConfig, landmark_descriptor
 from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_index
 from graffmatch.loops.retrieval import RetrievalConfig, eligible_count, make_retriever
 from graffmatch.loops.verify import LoopClosure, VerificationConfig, verify_query
 from graffmatch.matcher import GraffMatchConfig
 from graffmatch.pipeline import ScanMatcher, ScanMatcherConfig
+from graffmatch.verification.evidence import non_ground_support, voxel_downsample
 
 
 class LoopDetectorConfig(BaseModel):
@@ -51,9 +57,9 @@ class LoopDetector:
         self.retriever = make_retriever(self.config.retrieval)
         # One configured scan-to-scan path (graffmatch.pipeline.ScanMatcher): the same extractor
         # and verified matcher as register_scans, the CLI, the demo and the evaluation.
-        # The database keeps landmarks without their points (a few kB a scan), so the whole
-        # scan's range image (LandmarkSet.scan_ranges, ~4 ms a scan) would be computed and
-        # dropped: skip it. The stored tables are the same (tests/loops/test_units.py).
+        # The database keeps landmarks (and, for landmark-poor scans, a quantised evidence
+        # cloud), never the whole scan's range image (LandmarkSet.scan_ranges, ~4 ms a scan),
+        # which would be computed and dropped: skip it. The stored tables are the same (tests/loops/test_units.py).
         extractor = self.config.extractor.model_copy(update={"scan_ranges": False})
         self.scan_matcher = ScanMatcher(ScanMatcherConfig(extractor=extractor, matcher=self.config.matcher))
         self.matcher = self.scan_matcher
@@ -64,9 +70,25 @@ class LoopDetector:
         return self.scan_matcher.extractor
 
     def prepare(self, landmarks: LandmarkSet) -> tuple[LandmarkSet, NDArray[np.float32]]:
-        """The stored landmark map (most salient per type) and its descriptor."""
+        """The stored landmark map (most salient per type) and its descriptor; a landmark-poor
+        map (fewer than ``evidence_points_below`` landmarks) also keeps the evidence cloud of
+        its support points, as the database stores it (quantised)."""
         ls = keep_most_salient(landmarks.without_points(), self.config.verification.max_landmarks_per_type)
+        if len(ls) < self.config.verification.evidence_points_below:
+            ls = with_evidence_points(ls, self.evidence_points(landmarks))
         return ls, landmark_descriptor(ls, self.config.descriptor)
+
+    def evidence_points(self, landmarks: LandmarkSet) -> NDArray[np.float32] | None:
+        """The verified matcher's evidence cloud of a scan's landmarks (non-ground support points,
+        its voxel size and cap), on the database's storage grid; None without points."""
+        pts = non_ground_support(landmarks)
+        if pts is None:
+            return None
+        v = self.config.matcher.verification
+        P = voxel_downsample(pts, v.voxel, v.max_points)
+        if len(P) < 10:
+            return None
+        return decode_points(encode_points(P))
 
     def add(
         self,

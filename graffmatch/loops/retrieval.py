@@ -36,7 +36,8 @@ class RetrievalConfig(BaseModel):
     top_k: int = Field(
         20, ge=1, le=200,
         description="candidates retrieved per query; all go through the quick check, at most "
-        "verification.max_verified are verified",
+        "verification.max_verified are verified (30 gained open-road loops on the calibration drives "
+        "but reported a wrong courtyard loop found at rank 28: docs/loops.md, session 9)",
     )
     exclude_seconds: float = Field(
         10.0, ge=0, description="skip scans newer than this before the query [s]"

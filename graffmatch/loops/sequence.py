@@ -39,7 +39,12 @@ from graffmatch.datasets.base import Dataset
 from graffmatch.errors import InvalidInputError, MalformedFileError
 from graffmatch.evaluation.executors import make_executor
 from graffmatch.geometry.pose_files import write_kitti, write_tum
-from graffmatch.loops.database import LandmarkDatabase, load_landmarks, save_landmarks
+from graffmatch.loops.database import (
+    POINT_QUANTUM_M,
+    LandmarkDatabase,
+    load_landmarks,
+    save_landmarks,
+)
 from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig
 from graffmatch.loops.io import loop_edges, write_g2o, write_loops_csv
 from graffmatch.loops.quickcheck import QuickIndex, quick_index
@@ -60,15 +65,16 @@ def _stamp(path: Path | None) -> str:
 
 
 def _front_end_json(config: LoopDetectorConfig) -> str:
-    return json.dumps(
-        {
-            "extractor": config.extractor.model_dump(mode="json"),
-            "use_labels": config.use_labels,
-            "max_per_type": config.verification.max_landmarks_per_type,
-            "scan_context": config.retrieval.method == "scan-context",
-        },
-        sort_keys=True,
-    )
+    front = {
+        "extractor": config.extractor.model_dump(mode="json"),
+        "use_labels": config.use_labels,
+        "max_per_type": config.verification.max_landmarks_per_type,
+        "scan_context": config.retrieval.method == "scan-context",
+    }
+    if config.verification.evidence_points_below > 0:  # without points: the keys of tables without points
+        v = config.matcher.verification
+        front["evidence_points"] = [config.verification.evidence_points_below, v.voxel, v.max_points, POINT_QUANTUM_M]
+    return json.dumps(front, sort_keys=True)
 
 
 def _scan_key(dataset: Dataset, i: int, config: LoopDetectorConfig) -> str:

@@ -36,6 +36,13 @@ from graffmatch.pipeline import ScanMatcher
 PLACE_MARGIN_M = 0.25
 FEW_LANDMARKS_MIN_AGREEING = 5
 FEW_LANDMARKS_MATCHER_CONFIDENCE: float | None = 0.99
+#: Evidence points for scans with < 12 landmarks, then the quick estimate trusted from 4 inliers:
+#: chosen in that order on the same calibration drives (bench/loops_calibration_points.py,
+#: bench/results/loops_calibration_points.json; 12 is the largest value of its grid 0-12).
+EVIDENCE_POINTS_BELOW = 12
+QUICK_TRANSLATION_MIN_INLIERS = 4
+#: Fewest agreeing landmarks when both scans carry evidence points (the matcher verified on points).
+POINTS_MIN_AGREEING = 6
 
 
 class VerificationConfig(BaseModel):
@@ -82,6 +89,21 @@ class VerificationConfig(BaseModel):
         description="the verified matcher's confidence from which few_landmarks_min_agreeing "
         "applies; None: min_agreeing always",
     )
+    evidence_points_below: int = Field(
+        EVIDENCE_POINTS_BELOW,
+        ge=0,
+        description="a scan with fewer landmarks than this keeps its evidence cloud (voxelised "
+        "non-ground support points, quantised: ~2-4 kB) in the database, so that two such scans are "
+        "verified on points; 0: landmarks only (chosen on the calibration drives, "
+        "bench/loops_calibration.py)",
+    )
+    points_min_agreeing: int = Field(
+        POINTS_MIN_AGREEING,
+        ge=1,
+        description="fewest agreeing landmarks instead of min_agreeing when both scans carry evidence "
+        "points, so that the verified matcher decided on points (a scan kept its points because it has "
+        "few landmarks; chosen on the calibration drives, bench/loops_calibration_points.py)",
+    )
     max_landmarks_per_type: int | None = Field(
         40, ge=2, description="match at most this many landmarks of a type (largest first)"
     )
@@ -102,7 +124,9 @@ class VerificationConfig(BaseModel):
         "max_translation_m plus this [m] ...",
     )
     quick_translation_min_inliers: int = Field(
-        6, ge=1, description="... when that estimate has at least this many inliers"
+        QUICK_TRANSLATION_MIN_INLIERS, ge=1,
+        description="... when that estimate has at least this many inliers (4: chosen of 6/5/4 on the "
+        "calibration drives, bench/loops_calibration_points.py: the same loops, fewer verifications)",
     )
     max_verified: int = Field(
         5, ge=1, description="verify at most this many of the retrieved candidates (best quick score first)"
@@ -178,14 +202,18 @@ def landmark_agreement(
     return agree, agree / min(len(source), len(target))
 
 
-def required_agreeing(matcher_confidence: float | None, config: VerificationConfig) -> int:
+def required_agreeing(matcher_confidence: float | None, config: VerificationConfig, on_points: bool = False) -> int:
     """Fewest agreeing landmarks for a non-zero confidence: ``min_agreeing``, or the smaller
     ``few_landmarks_min_agreeing`` when the verified matcher's own evidence is strong (a
-    landmark-poor scan cannot show six agreeing landmarks however right its pose is)."""
+    landmark-poor scan cannot show six agreeing landmarks however right its pose is), or
+    ``points_min_agreeing`` when the matcher verified the pair on points (``on_points``)."""
+    need = config.min_agreeing
     tau = config.few_landmarks_matcher_confidence
     if tau is not None and matcher_confidence is not None and matcher_confidence >= tau:
-        return min(config.min_agreeing, config.few_landmarks_min_agreeing)
-    return config.min_agreeing
+        need = min(need, config.few_landmarks_min_agreeing)
+    if on_points:
+        need = min(need, config.points_min_agreeing)
+    return need
 
 
 def loop_confidence(
@@ -195,11 +223,13 @@ def loop_confidence(
     agreement: float,
     distance_m: float,
     config: VerificationConfig,
+    on_points: bool = False,
 ) -> float:
     """The confidence of a verified candidate (0: not a loop), from the matcher's verdict, the
-    landmark agreement and the estimated sensor distance. One rule for ``graffmatch loops``,
-    :class:`LoopDetector` and the benchmark (and its calibration replay)."""
-    if not matcher_valid or n_agreeing < required_agreeing(matcher_confidence, config):
+    landmark agreement and the estimated sensor distance (``on_points``: both scans carry
+    evidence points). One rule for ``graffmatch loops``, :class:`LoopDetector` and the benchmark
+    (and its calibration replay)."""
+    if not matcher_valid or n_agreeing < required_agreeing(matcher_confidence, config, on_points):
         return 0.0
     if config.max_translation_m is not None and distance_m > config.max_translation_m - config.place_margin_m:
         return 0.0
@@ -229,10 +259,12 @@ def verify_candidate(
     """Match ``query`` (source) to ``candidate`` (target) and score the estimate.
 
     Returns a dict: T_match_query (or None), confidence, overlap, n_associations, n_agreeing,
-    matcher_valid, matcher_confidence, message, seconds.
+    matcher_valid, matcher_confidence, on_points (both sets carry evidence points), message, seconds.
     """
     t0 = time.perf_counter()
+    on_points = query.points is not None and candidate.points is not None
     out = {
+        "on_points": on_points,
         "T_match_query": None,
         "confidence": 0.0,
         "overlap": 0.0,
@@ -265,7 +297,7 @@ def verify_candidate(
         out.update(T_match_query=T, n_agreeing=n_agree, overlap=float(overlap))
         out["confidence"] = loop_confidence(
             bool(res.valid), out["matcher_confidence"], n_agree, float(overlap),
-            float(np.linalg.norm(T[:3, 3])), config,
+            float(np.linalg.norm(T[:3, 3])), config, on_points,
         )
     out["seconds"] = time.perf_counter() - t0
     return out
@@ -317,7 +349,7 @@ def verify_query(
             overlap=v["overlap"], n_associations=v["n_associations"], n_agreeing=v["n_agreeing"],
             rms_offset=v.get("rms_offset"), seconds=rec["seconds"] + v["seconds"], verified=True,
             verify_seconds=v["seconds"], matcher_valid=v["matcher_valid"],
-            matcher_confidence=v["matcher_confidence"],
+            matcher_confidence=v["matcher_confidence"], on_points=v["on_points"],
         )
         if config.stop_when_accepted and v["confidence"] >= config.min_confidence:
             break

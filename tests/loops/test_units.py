@@ -368,6 +368,13 @@ def test_loop_confidence_place_margin_and_landmark_poor_rule():
     assert loop_confidence(True, 0.99, 5, 0.9, 2.0, free) == 0.0
     with pytest.raises(ValueError):
         VerificationConfig(place_margin_m=-0.1)
+    # verified on points (both scans kept their evidence points): points_min_agreeing applies
+    pts = free.model_copy(update={"points_min_agreeing": 3})
+    assert required_agreeing(0.5, pts, on_points=True) == 3 and required_agreeing(0.5, pts) == 6
+    assert loop_confidence(True, 0.64, 3, 1.0, 2.0, pts, on_points=True) == pytest.approx(0.8)
+    assert loop_confidence(True, 0.64, 3, 1.0, 2.0, pts) == 0.0
+    # the default (chosen on the calibration drives: 4 let a wrong downtown loop through) is min_agreeing
+    assert VerificationConfig().points_min_agreeing == VerificationConfig().min_agreeing == 6
 
 
 def test_place_margin_rejects_a_verified_loop_at_the_radius():
@@ -404,3 +411,71 @@ def test_loop_database_skips_the_range_image_it_would_drop(shared_data):
     (a, da), (b, db) = det.prepare(full), det.prepare(lean)
     assert landmarks_to_bytes(a) == landmarks_to_bytes(b) and np.array_equal(da, db)
 
+
+
+def test_evidence_points_codec_is_exact_on_its_grid_and_compact(tmp_path):
+    """Stored evidence points: on the 5 cm grid (error <= 2.5 cm), decoded bit for bit again,
+    far coordinates survive the modulo-2^16 deltas, and 1,500 points of a street cost < 4 kB."""
+    from graffmatch.loops.database import (
+        POINT_QUANTUM_M,
+        decode_points,
+        encode_points,
+        load_landmarks,
+        save_landmarks,
+        with_evidence_points,
+    )
+
+    rng = np.random.default_rng(3)
+    facade = np.c_[rng.uniform(-40, 40, 1200), np.full(1200, 7.0) + 0.02 * rng.standard_normal(1200),
+                   rng.uniform(-1, 8, 1200)]
+    poles = np.c_[np.repeat(rng.uniform(-30, 30, (6, 2)), 50, axis=0), np.tile(np.linspace(0, 4, 50), 6)]
+    P = np.r_[facade, poles]
+    code = encode_points(P)
+    assert code.dtype == np.int16 and code.shape == (3, len(P))
+    back = decode_points(code)
+    assert np.abs(np.sort(back, axis=0) - np.sort(P, axis=0)).max() <= POINT_QUANTUM_M / 2 + 1e-6
+    assert np.array_equal(decode_points(encode_points(back)), back)  # idempotent on the grid
+    far = np.array([[1599.0, -1599.0, 3.0], [-1599.0, 1599.0, -3.0], [0.0, 0.0, 0.0]])
+    np.testing.assert_allclose(np.sort(decode_points(encode_points(far)), axis=0), np.sort(far, axis=0), atol=1e-3)
+    assert len(decode_points(encode_points(np.array([[5000.0, 0, 0], [1.0, 2.0, 3.0]])))) == 1  # out of range
+    ls = with_evidence_points(_place(4, 4, 2), back)
+    assert ls.points is not None and ls.point_offsets[0] == 0 and ls.point_offsets[-1] == len(P)
+    assert len(landmarks_to_bytes(ls)) < 4000
+    save_landmarks(tmp_path / "a.npz", ls)
+    again = load_landmarks(tmp_path / "a.npz")
+    assert np.array_equal(again.points, back) and again.approx_equal(ls, atol=1e-5)
+    save_landmarks(tmp_path / "b.npz", _place(4))
+    assert load_landmarks(tmp_path / "b.npz").points is None
+    np.savez(tmp_path / "c.npz", landmarks=encode_landmarks(_place(4)), points=np.zeros((2, 4), np.int16))
+    with pytest.raises(MalformedFileError, match="c.npz"):
+        load_landmarks(tmp_path / "c.npz")
+
+
+def test_landmark_poor_scans_keep_their_evidence_points():
+    """prepare(): a map with fewer landmarks than evidence_points_below keeps the matcher's
+    evidence cloud (voxelised non-ground support, on the storage grid), a richer one does not,
+    and 0 turns it off; the database's bytes per scan count the points."""
+    from graffmatch.loops import LoopDetectorConfig
+
+    rng = np.random.default_rng(5)
+    poor = _place(6, 3, 2)
+    pts = np.c_[rng.uniform(-40, 40, 3000), np.where(rng.random(3000) < 0.5, -8.0, 8.0),
+                rng.uniform(0, 9, 3000)]  # two facades of a street
+    off = np.linspace(0, 3000, len(poor) + 1).astype(np.int64)
+    poor = LandmarkSet(poor.types, poor.bases, poor.anchors, poor.attributes, pts, off)
+    rich = LandmarkSet(*(getattr(_place(7), k) for k in ("types", "bases", "anchors", "attributes")),
+                       pts, np.linspace(0, 3000, 25).astype(np.int64))
+    cfg = LoopDetectorConfig()
+    det = LoopDetector(cfg)
+    assert cfg.verification.evidence_points_below > len(poor)
+    kept, _ = det.prepare(poor)
+    v = cfg.matcher.verification
+    assert kept.points is not None and len(kept.points) == min(v.max_points, len(det.evidence_points(poor)))
+    assert 0.9 * v.max_points <= len(kept.points) <= v.max_points
+    assert det.prepare(rich)[0].points is None
+    off_cfg = LoopDetectorConfig()
+    off_cfg.verification.evidence_points_below = 0
+    assert LoopDetector(off_cfg).prepare(poor)[0].points is None
+    db = LandmarkDatabase()
+    db.add(kept, np.zeros(4, np.float32), 0.0)
+    assert 2000 < db.bytes_per_scan() < 5000
