@@ -61,20 +61,6 @@ PLAUSIBLE_SPAN = (10.0, 400.0)
 DEGENERATE_RATIO = 1e-3
 
 
-@nb.njit(cache=True)
-def _finite_absmax(A):
-    """(rows with a NaN/Inf coordinate, largest |coordinate| of the finite rows) in one pass."""
-    bad = 0
-    m = 0.0
-    for i in range(A.shape[0]):
-        x, y, z = A[i, 0], A[i, 1], A[i, 2]
-        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
-            bad += 1
-            continue
-        m = max(m, abs(x), abs(y), abs(z))
-    return bad, m
-
-
 #: Relative margin of :func:`_crop`'s borderline rows: far above the few ulps by which two
 #: evaluations of |p|^2 (and sqrt, and squaring the bounds) can differ.
 _CROP_MARGIN = 1e-9
@@ -82,16 +68,22 @@ _CROP_MARGIN = 1e-9
 
 @nb.njit(cache=True)
 def _crop(A, rmin2, rmax2):
-    """float64 xyz of the rows with rmin2 <= |p|^2 <= rmax2, their indices, and how many kept
-    rows lie within a relative :data:`_CROP_MARGIN` of either bound (only those can fail the
-    caller's sqrt-then-compare test: none means every kept row passes it)."""
+    """In one pass: whether every row is finite, the largest |coordinate| (of the rows seen),
+    and for the fast path float64 xyz of the rows with rmin2 <= |p|^2 <= rmax2, their indices
+    and how many kept rows lie within a relative :data:`_CROP_MARGIN` of either bound (only
+    those can fail the caller's sqrt-then-compare test: none means every kept row passes it).
+    Stops at the first row with a NaN/Inf coordinate (finite False: the general path)."""
     n = A.shape[0]
     keep = np.empty(n, np.int64)
     lo = rmin2 * (1.0 + _CROP_MARGIN)
     hi = rmax2 * (1.0 - _CROP_MARGIN)
     m = 0
     border = 0
+    amax = 0.0
     for i in range(n):
+        if not (np.isfinite(A[i, 0]) and np.isfinite(A[i, 1]) and np.isfinite(A[i, 2])):
+            return False, amax, np.empty((0, 3)), keep[:0].copy(), 0
+        amax = max(amax, abs(A[i, 0]), abs(A[i, 1]), abs(A[i, 2]))
         x, y, z = np.float64(A[i, 0]), np.float64(A[i, 1]), np.float64(A[i, 2])
         r2 = x * x + y * y + z * z
         if rmin2 <= r2 <= rmax2:
@@ -103,7 +95,7 @@ def _crop(A, rmin2, rmax2):
     for k in range(m):
         i = keep[k]
         P[k, 0], P[k, 1], P[k, 2] = A[i, 0], A[i, 1], A[i, 2]
-    return P, keep[:m].copy(), border
+    return True, amax, P, keep[:m].copy(), border
 
 
 @nb.njit(cache=True)
@@ -272,15 +264,14 @@ class LandmarkExtractor:
         cfg = self.config
         self._extent = 0.0
         if arr.dtype.kind == "f" and arr.shape[0]:
-            # Fast path (finite, near the origin, in metres): one pass to check, one to crop.
-            bad, amax = _finite_absmax(arr)
+            # Fast path (finite, near the origin, in metres): one pass checks and crops.
+            rmax = np.inf if cfg.max_range is None else cfg.max_range
+            finite, amax, P, keep, border = _crop(arr, cfg.min_range**2, rmax**2)
             small = min(UNITS_EXTENT_LIMIT, cfg.recenter_distance, MAX_COORDINATE)
-            if bad == 0 and amax <= small:
+            if finite and amax <= small:
                 self._n_finite = int(arr.shape[0])
-                rmax = np.inf if cfg.max_range is None else cfg.max_range
                 # The same float64 comparison as the general path below (sqrt then compare),
                 # needed only for rows within rounding of a bound (every other kept row passes)
-                P, keep, border = _crop(arr, cfg.min_range**2, rmax**2)
                 if border:
                     r = np.sqrt(np.einsum("ij,ij->i", P, P))
                     ok = (r >= cfg.min_range) & (r <= rmax)

@@ -163,3 +163,18 @@ def test_range_crop_is_the_sqrt_then_compare_definition(dtype) -> None:
     want = P64[(r2 >= lo**2) & (r2 <= hi**2) & (r >= lo) & (r <= hi)]
     assert 0 < len(want) < len(pts)
     np.testing.assert_array_equal(P, want)
+
+
+def test_a_nan_row_sends_the_cloud_to_the_general_path() -> None:
+    """One NaN row anywhere: the fused check-and-crop gives up, and the general path drops the
+    row with a warning and keeps the rows whose sqrt(x^2 + y^2 + z^2) is within the range."""
+    ex = LandmarkExtractor()
+    lo, hi = ex.config.min_range, ex.config.max_range
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-90, 90, (3000, 3))
+    pts[1777, 1] = np.nan
+    with pytest.warns(RuntimeWarning, match="dropped 1 of 3000"):
+        P, _, _ = ex._validate(pts, None)
+    Q = np.delete(pts, 1777, axis=0)
+    r = np.sqrt(Q[:, 0] ** 2 + Q[:, 1] ** 2 + Q[:, 2] ** 2)
+    np.testing.assert_array_equal(P, Q[(r >= lo) & (r <= hi)])
