@@ -219,15 +219,58 @@ def run_pairs(src: dict, pairs: list[dict], cfg: GraffMatchConfig) -> list[dict]
     return rows
 
 
-def decide(rows: list[dict], min_overlap: float, max_ratio: float, max_conflict: float = 1.0,
+def run_both(src: dict, pairs: list[dict]) -> list[dict]:
+    """Each pair matched with every threshold open, first pass only (``wide_search="never"``),
+    and again with the wide pass after it (``"always"``), kept as the row's ``wide``: the matcher
+    returns the first pass when it is valid, else the wide one (``wide_search="when_invalid"``),
+    which :func:`decide` and :func:`answered` reproduce at any thresholds."""
+    def open_cfg(mode: str) -> GraffMatchConfig:
+        return GraffMatchConfig(verification=VerificationConfig(
+            min_overlap=0.0, max_rival_ratio=1.0, max_conflict=1.0, max_conflict_support_points=1.0,
+            min_landmark_overlap=0.0, wide_search=mode))
+
+    rows = run_pairs(src, pairs, open_cfg("never"))
+    print("  the wide pass:", flush=True)
+    for r, w in zip(rows, run_pairs(src, pairs, open_cfg("always")), strict=True):
+        r["wide"] = w
+    return rows
+
+
+def passes(rows: list[dict], min_overlap: float, max_ratio: float, max_conflict: float = 1.0,
            max_slide: float | None = None) -> np.ndarray:
+    """Which rows of one verification pass are valid at these thresholds."""
     s = np.array([r["score"] for r in rows])
     q = np.array([r["ratio"] for r in rows])
     c = np.array([r.get("conflict", 0.0) for r in rows])
-    st = np.array([r["structural"] for r in rows])
+    st = np.array([r["structural"] for r in rows], bool)
     if max_slide is not None:
         st = st & (np.array([r.get("slide", 0.0) for r in rows]) <= max_slide)
     return st & (s >= min_overlap) & (q <= max_ratio) & (c <= max_conflict)
+
+
+def decide(rows: list[dict], min_overlap: float, max_ratio: float, max_conflict: float = 1.0,
+           max_slide: float | None = None) -> np.ndarray:
+    """Valid at these thresholds: the first pass, or else (rows with a ``wide`` pass, the
+    matcher's ``wide_search="when_invalid"``) the wide pass."""
+    v = passes(rows, min_overlap, max_ratio, max_conflict, max_slide)
+    if rows and "wide" in rows[0]:
+        v = v | passes([r["wide"] for r in rows], min_overlap, max_ratio, max_conflict, max_slide)
+    return v
+
+
+def answered(rows: list[dict], min_overlap: float, max_ratio: float, max_conflict: float = 1.0,
+             max_slide: float | None = None) -> list[dict]:
+    """The row the matcher returns for each pair at these thresholds: the first pass when it is
+    valid, else its wide pass (rows without one: themselves)."""
+    if not rows or "wide" not in rows[0]:
+        return rows
+    v = passes(rows, min_overlap, max_ratio, max_conflict, max_slide)
+    return [r if ok else r["wide"] for r, ok in zip(rows, v, strict=True)]
+
+
+def outcome(rows: list[dict], *th) -> dict:
+    """metrics of ``rows`` decided at thresholds ``th`` (both passes)."""
+    return metrics(answered(rows, *th), decide(rows, *th))
 
 
 def metrics(rows: list[dict], valid: np.ndarray) -> dict:
@@ -299,55 +342,76 @@ def free_space_conflicts(src: dict, rows: list[dict], variant: tuple, use_scan_r
 
 
 def choose_thresholds(cal: list[dict], conflicts: np.ndarray | None = None, groups: np.ndarray | None = None,
-                      max_neg_fpr: float = 0.005, loose_conflict: bool = True) -> tuple[float, float, float, dict]:
+                      max_neg_fpr: float = 0.005, loose_conflict: bool = True,
+                      wide_conflicts: np.ndarray | None = None) -> tuple[float, float, float, dict]:
     """Most calibration recall with precision >= 99.5 % (in each of ``groups`` when given) and
     <= ``max_neg_fpr`` valid-and-wrong negatives (vectorised over the grid); ties: the stricter
-    overlap / ratio, the looser conflict (``loose_conflict``) or the stricter."""
-    S = np.array([r["score"] for r in cal])
-    Q = np.array([r["ratio"] for r in cal])
-    ST = np.array([r["structural"] for r in cal])
-    COR = np.array([r["correct"] for r in cal])
-    POS = np.array([r["positive"] for r in cal])
-    C = np.array([r.get("conflict", 0.0) for r in cal]) if conflicts is None else conflicts
+    overlap / ratio, the looser conflict (``loose_conflict``) or the stricter. Rows with a
+    ``wide`` pass are decided as the matcher does: the first pass when valid, else the wide one."""
+    def arrays(rs: list[dict], C: np.ndarray | None) -> tuple:
+        return (np.array([r["score"] for r in rs]), np.array([r["ratio"] for r in rs]),
+                np.array([r["structural"] for r in rs], bool), np.array([r["correct"] for r in rs], bool),
+                np.array([r.get("conflict", 0.0) for r in rs]) if C is None else C)
+
+    S, Q, ST, COR, C = arrays(cal, conflicts)
+    wide = bool(cal) and "wide" in cal[0]
+    if wide:
+        Sw, Qw, STw, CORw, Cw = arrays([r["wide"] for r in cal], wide_conflicts)
+    POS = np.array([r["positive"] for r in cal], bool)
     n_pos, n_neg = max(POS.sum(), 1), max((~POS).sum(), 1)
     G = [] if groups is None else [groups == g for g in np.unique(groups)]
     best = None
     for mc in [*np.round(np.arange(0.04, 0.40, 0.01), 3), 1.0]:
         b1 = ST & (C <= mc)
+        if wide:
+            w1 = STw & (Cw <= mc)
         for mo in np.round(np.arange(0.05, 0.71, 0.0125), 4):
             b2 = b1 & (S >= mo)
+            if wide:
+                w2 = w1 & (Sw >= mo)
             for mr in np.round(np.arange(0.5, 0.96, 0.025), 3):
                 v = b2 & (Q <= mr)
+                cor = COR
+                if wide:
+                    cor = np.where(v, COR, CORw)
+                    v = v | (w2 & (Qw <= mr))
                 nv = v.sum()
-                tp = (v & COR).sum()
-                if (nv and tp / nv < 0.995) or (v & ~POS & ~COR).sum() / n_neg > max_neg_fpr:
+                tp = (v & cor).sum()
+                if (nv and tp / nv < 0.995) or (v & ~POS & ~cor).sum() / n_neg > max_neg_fpr:
                     continue
-                if groups is not None and any((v & g).sum() and (v & g & COR).sum() / (v & g).sum() < 0.995
+                if groups is not None and any((v & g).sum() and (v & g & cor).sum() / (v & g).sum() < 0.995
                                               for g in G):
                     continue
-                key = ((v & COR & POS).sum() / n_pos, -mo, -mr, mc if loose_conflict else -mc)
+                key = ((v & cor & POS).sum() / n_pos, -mo, -mr, mc if loose_conflict else -mc)
                 if best is None or key > best[0]:
                     best = (key, float(mo), float(mr), float(mc))
     if best is None:
         return 0.7, 0.5, 0.0, {}
     rows = [dict(r, conflict=float(c)) for r, c in zip(cal, C, strict=True)]
-    return best[1], best[2], best[3], metrics(rows, decide(rows, best[1], best[2], best[3]))
+    if wide:
+        for r, cw in zip(rows, Cw, strict=True):
+            r["wide"] = dict(r["wide"], conflict=float(cw))
+    return best[1], best[2], best[3], outcome(rows, best[1], best[2], best[3])
 
 
 def choose_support_conflict(cal: list[dict], min_overlap: float, max_ratio: float,
-                            max_neg_fpr: float = 0.005) -> float:
+                            max_neg_fpr: float = 0.005, groups: np.ndarray | None = None) -> float:
     """``max_conflict`` for the support points' image at fixed overlap / rival thresholds: the
-    most calibration recall with precision >= 99.5 % and <= ``max_neg_fpr`` valid-and-wrong
-    negatives; ties: the stricter."""
+    most calibration recall with precision >= 99.5 % (in each of ``groups`` when given: each
+    recording, and the cross-dataset negatives, where any valid result is wrong) and <=
+    ``max_neg_fpr`` valid-and-wrong negatives; ties: the stricter."""
     best = None
     n_neg = max(sum(not r["positive"] for r in cal), 1)
     n_pos = max(sum(r["positive"] for r in cal), 1)
+    pos = np.array([r["positive"] for r in cal], bool)
+    G = [] if groups is None else [groups == g for g in np.unique(groups)]
     for mc in np.round(np.arange(0.0, 0.40, 0.005), 3):
         v = decide(cal, min_overlap, max_ratio, float(mc))
-        cor = np.array([r["correct"] for r in cal])
-        pos = np.array([r["positive"] for r in cal])
+        cor = np.array([r["correct"] for r in answered(cal, min_overlap, max_ratio, float(mc))], bool)
         nv = v.sum()
         if (nv and (v & cor).sum() / nv < 0.995) or (v & ~pos & ~cor).sum() / n_neg > max_neg_fpr:
+            continue
+        if any((v & g).sum() and (v & g & cor).sum() / (v & g).sum() < 0.995 for g in G):
             continue
         key = ((v & cor & pos).sum() / n_pos, -mc)
         if best is None or key > best[0]:
@@ -473,29 +537,28 @@ def main() -> None:
         (out / "lines_only_rows.json").write_text(json.dumps(lines_rows, default=float))
         print(f"wrote {out / 'lines_only_rows.json'}")
         return
-    open_cfg = GraffMatchConfig(verification=VerificationConfig(min_overlap=0.0, max_rival_ratio=1.0,
-                                                                max_conflict=1.0, max_conflict_support_points=1.0,
-                                                                min_landmark_overlap=0.0))
-    rows = run_pairs(src, pairs, open_cfg)
+    rows = run_both(src, pairs)
     cal = [r for r in rows if r["split"] == "cal"]
     test = [r for r in rows if r["split"] == "test"]
     # precision >= 99.5 % in each recording's calibration pairs (the targets are per suite; cross-dataset
     # negatives form one group, in which any valid result is wrong), as the lines-only pass chooses
     groups = np.array([r["ds"] if r["ds"] == r["ds2"] else "cross" for r in cal])
+    is_cal = np.array([r["split"] == "cal" for r in rows])
     variants = []
     for variant in FREE_SPACE_VARIANTS:  # the range image, chosen on the calibration split too
         c_all = free_space_conflicts(src, rows, variant)
-        c_cal = np.array([c for c, r in zip(c_all, rows, strict=True) if r["split"] == "cal"])
-        mo, mr, mc, cal_m = choose_thresholds(cal, c_cal, groups)
+        w_all = free_space_conflicts(src, [r["wide"] for r in rows], variant)
+        mo, mr, mc, cal_m = choose_thresholds(cal, c_all[is_cal], groups, wide_conflicts=w_all[is_cal])
         variants.append({"variant": variant, "min_overlap": mo, "max_rival_ratio": mr, "max_conflict": mc,
-                         "calibration_recall": cal_m.get("recall", 0.0), "conflicts": c_all})
+                         "calibration_recall": cal_m.get("recall", 0.0), "conflicts": c_all, "wide_conflicts": w_all})
         print(f"  free space {variant}: calibration recall {cal_m.get('recall', 0.0):.3f} at "
               f"min_overlap={mo}, max_rival_ratio={mr}, max_conflict={mc}", flush=True)
     chosen = max(variants, key=lambda v: (v["calibration_recall"], -FREE_SPACE_VARIANTS.index(v["variant"])))
-    for r, c in zip(rows, chosen["conflicts"], strict=True):
+    for r, c, cw in zip(rows, chosen["conflicts"], chosen["wide_conflicts"], strict=True):
         r["conflict"] = float(c)
+        r["wide"]["conflict"] = float(cw)
     mo, mr, mc, cal_m = choose_thresholds(cal, groups=groups)
-    coef = fit_confidence(cal)
+    coef = fit_confidence(answered(cal, mo, mr, mc))
     print(f"free-space variant chosen on the calibration split: {chosen['variant']}")
     print(f"\nchosen on the calibration split ({len(cal)} pairs): min_overlap={mo}, max_rival_ratio={mr}, "
           f"max_conflict={mc}; confidence coef={tuple(round(c, 3) for c in coef)}")
@@ -503,20 +566,24 @@ def main() -> None:
                     "free_space_variant": dict(zip(("az_deg", "el_deg", "neighbours", "margin", "margin_rel",
                                                     "scan_neighbours"),
                                                    chosen["variant"], strict=True)),
-                    "free_space_variants": [{k: v for k, v in d.items() if k != "conflicts"} for d in variants],
+                    "free_space_variants": [{k: v for k, v in d.items() if k not in ("conflicts", "wide_conflicts")}
+                                            for d in variants],
                     "confidence_coef": coef, "calibration": cal_m, "test": {}, "test_by_dataset": {}}
     base = VerificationConfig()
-    for label, th in {"chosen": (mo, mr, mc), "defaults": (base.min_overlap, base.max_rival_ratio, base.max_conflict),
-                      "without free space": (mo, mr, 1.0)}.items():
-        report["test"][label] = metrics(test, decide(test, *th))
+    first_only = [{k: v for k, v in r.items() if k != "wide"} for r in test]
+    for label, (rs, th) in {"chosen": (test, (mo, mr, mc)),
+                            "defaults": (test, (base.min_overlap, base.max_rival_ratio, base.max_conflict)),
+                            "without free space": (test, (mo, mr, 1.0)),
+                            "first pass only": (first_only, (mo, mr, mc))}.items():
+        report["test"][label] = outcome(rs, *th)
     v = decide(test, mo, mr, mc)
+    test_answer = answered(test, mo, mr, mc)
     print(f"\n{'test split':<30}{'pairs':>6}{'pos':>5}{'neg':>5}{'valid':>6}{'prec':>7}{'recall':>7}"
           f"{'oracle':>7}{'FP neg':>8}")
     keys = sorted({(r["ds"], r["ds2"]) for r in test})
     for ds, ds2 in keys:
         idx = [k for k, r in enumerate(test) if r["ds"] == ds and r["ds2"] == ds2]
-        sub = [test[k] for k in idx]
-        m = metrics(sub, v[idx])
+        m = metrics([test_answer[k] for k in idx], v[idx])
         name = ds if ds == ds2 else f"{ds} x {ds2}"
         report["test_by_dataset"][name] = m
         print(f"{name:<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
@@ -528,25 +595,30 @@ def main() -> None:
     # image, sparser: its own max_conflict, chosen on the calibration split at the same overlap and
     # rival thresholds, reported on the test split
     c_sup = free_space_conflicts(src, rows, chosen["variant"], use_scan_ranges=False)
-    sup = [dict(r, conflict=float(c)) for r, c in zip(rows, c_sup, strict=True)]
-    mc_sup = choose_support_conflict([r for r in sup if r["split"] == "cal"], mo, mr)
+    w_sup = free_space_conflicts(src, [r["wide"] for r in rows], chosen["variant"], use_scan_ranges=False)
+    sup = [dict(r, conflict=float(c), wide=dict(r["wide"], conflict=float(cw)))
+           for r, c, cw in zip(rows, c_sup, w_sup, strict=True)]
+    mc_sup = choose_support_conflict([r for r in sup if r["split"] == "cal"], mo, mr, groups=groups)
     report["thresholds"]["max_conflict_support_points"] = mc_sup
     fallback = [r for r in sup if r["split"] == "test"]
-    report["test"]["support-point image"] = metrics(fallback, decide(fallback, mo, mr, mc_sup))
+    report["test"]["support-point image"] = outcome(fallback, mo, mr, mc_sup)
     print(f"support-point image (sets without scan_ranges): max_conflict={mc_sup} chosen on the calibration split")
-    for label in ("defaults", "without free space", "support-point image"):
+    for label in ("defaults", "without free space", "first pass only", "support-point image"):
         m = report["test"][label]
         print(f"{'ALL (test), ' + label:<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
               f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
     if a.raw_drives:  # the same test pairs without de-skewing, at the thresholds chosen above
-        raw = run_pairs(src, raw_drive_pairs(pairs), open_cfg)
-        for r, c in zip(raw, free_space_conflicts(src, raw, chosen["variant"]), strict=True):
+        raw = run_both(src, raw_drive_pairs(pairs))
+        for r, c, cw in zip(raw, free_space_conflicts(src, raw, chosen["variant"]),
+                            free_space_conflicts(src, [r["wide"] for r in raw], chosen["variant"]), strict=True):
             r["conflict"] = float(c)
+            r["wide"]["conflict"] = float(cw)
         vr = decide(raw, mo, mr, mc)
+        raw_answer = answered(raw, mo, mr, mc)
         report["raw_drives_test"] = {}
         for name in sorted({r["ds"] for r in raw}):
             idx = [k for k, r in enumerate(raw) if r["ds"] == name]
-            m = report["raw_drives_test"][name] = metrics([raw[k] for k in idx], vr[idx])
+            m = report["raw_drives_test"][name] = metrics([raw_answer[k] for k in idx], vr[idx])
             print(f"{name:<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
                   f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
         rows = rows + raw
@@ -557,14 +629,16 @@ def main() -> None:
     report["lines_only_thresholds"] = lines["thresholds"]
     report["lines_only_calibration"] = lines["calibration"]
     report["lines_only_test"] = lines["test"]
-    st = np.array([r["structural"] for r in test])
-    lab = np.array([r["correct"] for r in test])
-    sc = np.array([r["score"] for r in test])
+    st = np.array([r["structural"] for r in test_answer])
+    lab = np.array([r["correct"] for r in test_answer])
+    sc = np.array([r["score"] for r in test_answer])
     report["test_auc_overlap"] = auc(sc[st], lab[st])
     court = np.array([r["ds"] == "courtyard" and r["ds2"] == "courtyard" for r in test])
     report["test_auc_overlap_courtyard"] = auc(sc[st & court], lab[st & court])
-    report["reliability_test"] = reliability(test, coef, v)
-    times = np.array([r["t"] for r in rows if r.get("t")])
+    report["reliability_test"] = reliability(test_answer, coef, v)
+    times = np.array([r["t"] + r["wide"].get("t", 0.0) * (not ok) for r, ok in
+                      zip(rows, decide([{k: x for k, x in r.items() if k != "wide"} for r in rows], mo, mr, mc),
+                          strict=True) if r.get("t")])
     report["match_ms"] = {"median": float(np.median(times) * 1e3), "p95": float(np.percentile(times, 95) * 1e3)}
     print(f"\nAUC of overlap (correct vs wrong, structurally valid, test): {report['test_auc_overlap']:.3f}"
           f" (courtyard {report['test_auc_overlap_courtyard']:.3f})")

@@ -246,17 +246,38 @@ def match_with_distances(
 
 def _verified_result(source, target, graph, sol, cfg: GraffMatchConfig, timings, common,
                      evidence: Evidence | None) -> MatchResult:
-    """Hypotheses from the graph, registered, scored and decided (``graffmatch.verification``)."""
-    gate = None if cfg.reject_residual_m is None else (cfg.reject_residual_m, cfg.reject_residual_deg)
+    """Hypotheses from the graph, registered, scored and decided (``graffmatch.verification``).
+    An invalid first pass is searched again wider (``VerificationConfig.wide_search``), whose
+    result is returned; a valid one is returned as it is."""
+    vcfg = cfg.verification.for_landmark_types(cfg.landmark_types)
+    W = graph.weights.tocsr()
     vt: dict[str, float] = {}
-    verdict, hyps = verify_graph(
-        source, target, graph.associations, graph.weights.tocsr(), sol.selected,
-        cfg.verification.for_landmark_types(cfg.landmark_types),
-        cfg.solver, cfg.kappa_max, gate, cfg.min_associations, evidence, vt,
-    )
+    res = _verified_once(source, target, graph, W, sol, cfg, vcfg, vt, dict(common, info=dict(common["info"])),
+                         evidence, False, None)
+    mode = vcfg.wide_search
+    if (mode != "never" and (mode == "always" or not res.valid) and res.T_target_source is not None
+            and res.info.get("wide_differs")):
+        res = _verified_once(source, target, graph, W, sol, cfg, vcfg, vt, common, evidence, True, res.hypotheses)
     timings["registration"] = vt.get("registration", 0.0)
     timings["verification"] = vt.get("hypotheses", 0.0) + vt.get("evidence", 0.0)
     timings["total"] = sum(timings.values())
+    res.timings = timings
+    return res
+
+
+def _verified_once(source, target, graph, W, sol, cfg: GraffMatchConfig, vcfg, vt: dict[str, float], common,
+                   evidence: Evidence | None, wide: bool, prior) -> MatchResult:
+    """One verification pass (``wide``: the wider search, with the first pass's hypotheses
+    ``prior``) as a result; ``vt`` accumulates its times."""
+    gate = None if cfg.reject_residual_m is None else (cfg.reject_residual_m, cfg.reject_residual_deg)
+    t: dict[str, float] = {}
+    verdict, hyps = verify_graph(
+        source, target, graph.associations, W, sol.selected, vcfg,
+        cfg.solver, cfg.kappa_max, gate, cfg.min_associations, evidence, t, wide, prior,
+    )
+    for k, v in t.items():
+        vt[k] = vt.get(k, 0.0) + v
+    timings: dict[str, float] = {}
     best = verdict.best
     if best is None:
         return MatchResult(None, kappa=np.inf, degenerate=True, valid=False,
@@ -272,7 +293,7 @@ def _verified_result(source, target, graph, sol, cfg: GraffMatchConfig, timings,
                   weights=np.ones(best.n_associations))
     common["info"].update(origin=best.origin, rival_ratio=verdict.rival_ratio,
                           score_parts=best.score_parts, clipper_selected=len(sol.selected))
-    for key in ("free_space_conflict", "free_space_image"):
+    for key in ("free_space_conflict", "free_space_image", "search", "wide_differs"):
         if key in best.info:
             common["info"][key] = best.info[key]
     if "slide_ratio" in best.info:

@@ -125,6 +125,81 @@ def _gated(hyps: list[Hypothesis], gate: tuple[float, float], min_assoc: int) ->
     return out
 
 
+def _trimmed(hyps: list[Hypothesis], source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64],
+             W: sp.csr_matrix, gate: tuple[float, float], min_assoc: int, kappa_max: float,
+             rounds: int) -> list[Hypothesis]:
+    """Iteratively trimmed variants: drop the association with the worst residual (offset over
+    the gate's metres or angle over its degrees, whichever is larger), re-register, and repeat
+    until every residual is within the gate or ``min_assoc`` remain (at most ``rounds`` drops);
+    the last variant of each chain becomes a hypothesis. All chains advance together, one batched
+    registration a round; chains that reach the same association set continue as one.
+
+    A greedy clique grown from true associations usually picks up one or two wrong but
+    consistent ones (a facade across the street, a pole one spacing along) that pull the least
+    squares metres off and spread the residuals, so the one-shot gate (:func:`_gated`) keeps or
+    drops the wrong set: on sim-downtown's calibration pairs the true associations registered
+    right where every clique was 1-5 m off (bench/verification.py, docs/verification.md)."""
+    res = [h.info["residuals"] for h in hyps]
+    lengths = np.array([len(r[0]) for r in res], dtype=np.int64)
+    if len(hyps) == 0 or lengths.sum() == 0:
+        return []
+    off = np.concatenate([r[0] for r in res])
+    ang = np.concatenate([r[1] for r in res])
+    verts = np.concatenate([h.info["vertices"] for h in hyps]).astype(np.int64)
+    origin = np.arange(len(hyps))  # each chain's first hypothesis
+    Ts = kappa = degenerate = None
+    found: list[tuple[int, NDArray[np.int64], int, NDArray[np.float64], float, bool, tuple]] = []
+    seen: set[bytes] = set()
+    for r in range(rounds + 1):
+        starts = np.r_[0, np.cumsum(lengths)[:-1]]
+        gid = np.repeat(np.arange(len(lengths)), lengths)
+        z = np.maximum(off / gate[0], ang / gate[1])
+        worst = np.lexsort((-z, gid))[starts]  # each chain's largest residual (its first, on ties)
+        go = (z[worst] > 1.0) & (lengths > min_assoc)
+        if r > 0:  # chains at their end (within the gate, at min_assoc, or out of rounds)
+            ends = np.flatnonzero(~go) if r < rounds else np.arange(len(lengths))
+            for c in ends.tolist():
+                lo, hi = starts[c], starts[c] + lengths[c]
+                found.append((int(origin[c]), verts[lo:hi], c, Ts[c], float(kappa[c]), bool(degenerate[c]),
+                              (off[lo:hi], ang[lo:hi])))
+        if r == rounds or not go.any():
+            break
+        keep = go[gid]
+        keep[worst] = False
+        chains = np.flatnonzero(go)
+        verts, lengths, origin = verts[keep], lengths[chains] - 1, origin[chains]
+        bounds = np.r_[0, np.cumsum(lengths)]
+        uniq = []  # one chain per association set
+        for c in range(len(lengths)):
+            key = np.sort(verts[bounds[c]:bounds[c + 1]]).tobytes()
+            if key not in seen:
+                seen.add(key)
+                uniq.append(c)
+        if not uniq:
+            break
+        if len(uniq) < len(lengths):
+            sel = np.zeros(len(lengths), bool)
+            sel[uniq] = True
+            verts = verts[np.repeat(sel, lengths)]
+            lengths, origin = lengths[sel], origin[sel]
+        try:
+            b = register_batch(source, target, associations[verts], np.repeat(np.arange(len(lengths)), lengths),
+                               None, kappa_max, len(lengths))
+        except DegenerateGeometryError:
+            break
+        Ts, kappa, degenerate = b.T_target_source, b.kappa, b.degenerate
+        off, ang = b.offset_residuals, b.angle_residuals_deg
+    if not found:
+        return []
+    objectives = clique_objectives(W, [f[1] for f in found]).tolist()
+    out = []
+    for (o, v, _, T, k, deg, res_), obj in zip(found, objectives, strict=True):
+        h = Hypothesis(np.array(T), associations[v], hyps[o].origin + "+trim", obj, k, deg,
+                       info={"vertices": v, "residuals": res_})
+        out.append(h)
+    return out
+
+
 def _refine(best: Hypothesis, source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64],
             kappa_max: float, gate: tuple[float, float], min_associations: int,
             ev: Evidence, cfg: VerificationConfig) -> None:
@@ -349,17 +424,27 @@ def verify_graph(
     source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64], W: sp.csr_matrix,
     winner: NDArray[np.int64], cfg: VerificationConfig, solver: ClipperConfig, kappa_max: float,
     gate: tuple[float, float] | None, min_associations: int, evidence: Evidence | None = None,
-    timings: dict[str, float] | None = None,
+    timings: dict[str, float] | None = None, wide: bool = False, prior: list[Hypothesis] | None = None,
 ) -> tuple[Verdict, list[Hypothesis]]:
     """Hypotheses of one graph, registered, scored and decided. Indices refer to source/target.
 
-    ``timings`` (optional) receives 'hypotheses', 'registration' and 'evidence' [s]."""
+    ``wide``: the wider search the matcher runs when a first pass finds no valid answer
+    (``VerificationConfig.wide_search``): greedy cliques from every vertex of graphs up to
+    ``wide_greedy_all_below`` associations and every clique also trimmed iteratively
+    (:func:`_trimmed`); ``prior`` (the first pass's scored hypotheses) join the wide pass's
+    before the decision, so an answer or rival the first pass found is never lost. Graphs with
+    pole pairs ignore ``wide``. The winner's
+    ``info["wide_differs"]`` says whether a wide pass would search differently (support points
+    as evidence, no pole pairs). ``timings`` (optional) receives 'hypotheses', 'registration'
+    and 'evidence' [s]."""
     tm = timings if timings is not None else {}
     t0 = time.perf_counter()
-    cands = candidate_cliques(W, winner, cfg, solver)
     ev = evidence if evidence is not None else evidence_for(source, target, cfg)
     pair_cands = _pair_candidates(source, target, associations, W, cfg, kappa_max, ev)
-    cands += pair_cands
+    wide = wide and not pair_cands
+    if wide:
+        cfg = cfg.model_copy(update={"greedy_all_below": max(cfg.greedy_all_below, cfg.wide_greedy_all_below)})
+    cands = candidate_cliques(W, winner, cfg, solver) + pair_cands
     t1 = time.perf_counter()
     hyps = _register(source, target, associations, W, cands, kappa_max)
     t2 = time.perf_counter()
@@ -382,7 +467,11 @@ def verify_graph(
         hyps = merge_hypotheses(hyps, cfg, by="objective")
     if gate is not None:
         t4 = time.perf_counter()
-        hyps += _register(source, target, associations, W, _gated(hyps, gate, min_associations), kappa_max)
+        gated = _register(source, target, associations, W, _gated(hyps, gate, min_associations), kappa_max)
+        if wide and cfg.trim_rounds > 0:
+            gated += _trimmed(hyps, source, target, associations, W, gate, min_associations, kappa_max,
+                              cfg.trim_rounds)
+        hyps += gated
         tm["registration"] += time.perf_counter() - t4
     t5 = time.perf_counter()
     score_hypotheses(hyps, source, target, ev, cfg, exact=False)
@@ -405,6 +494,8 @@ def verify_graph(
                 _local_search(lead, ev, cfg)
             if first is not None and first is not lead and any(first is x for x in merged):
                 _local_search(first, ev, cfg)
+        if wide and prior:  # the first pass's answers and rivals (scored on the same evidence)
+            merged += prior
         merged = merge_hypotheses(merged, cfg)
     min_score = cfg.min_overlap if ev.has_points else cfg.min_landmark_overlap
     verdict = decide(merged, cfg, min_score,
@@ -429,4 +520,7 @@ def verify_graph(
         _check_free_space(verdict, ev, cfg)
     if ev.has_points and cfg.max_slide_ratio is not None and verdict.best is not None:
         _check_slide(verdict, ev, cfg)
+    if verdict.best is not None:
+        verdict.best.info["wide_differs"] = bool(ev.has_points and not pair_cands)
+        verdict.best.info["search"] = "wide" if wide else "first"
     return verdict, merged

@@ -463,3 +463,64 @@ def test_lines_only_rejects_a_translation_the_points_do_not_pin():
     res = m.match(_street_view(world.transform(invert(T)), rng), _street_view(world, rng))
     r, t = transform_errors(res.T_target_source, T)
     assert res.valid and res.info["slide_ratio"] < 0.7 and r < 1.0 and t < 0.3, (r, t, res.info, res.message)
+
+
+def test_iterative_trimming_recovers_the_true_associations_the_one_shot_gate_loses():
+    """Session 9 (sim-downtown): a clique of 12 true associations plus 3 wrong but consistent
+    pole associations registers 2.8 m off, so that most residuals exceed the 1 m gate and the
+    one-shot gate keeps too few to register; dropping the worst association one at a time
+    returns exactly the true set and transform."""
+    import scipy.sparse as sp
+
+    from graffmatch.verification.hypotheses import Candidate
+    from graffmatch.verification.verify import _gated, _register, _trimmed
+
+    tgt = _scene_with_points(np.random.default_rng(3))
+    T_true = make_transform(rot_z(0.5), [4.0, -3.0, 0.2])
+    src = tgt.transform(invert(T_true))
+    n = len(tgt)
+    A = np.array([(k, k) for k in range(n)] + [(0, 1), (2, 3), (1, 0)], np.int64)
+    W = sp.csr_matrix(np.ones((len(A), len(A))) - np.eye(len(A)))
+    hyps = _register(src, tgt, A, W, [Candidate(np.arange(len(A) - 1), "greedy")], 1e3)  # 12 true, 2 wrong
+    assert transform_errors(hyps[0].T_target_source, T_true)[1] > 2.5
+    assert _gated(hyps, (1.0, 5.0), 3) == []
+    out = _trimmed(hyps, src, tgt, A, W, (1.0, 5.0), 3, 1e3, 10)
+    assert len(out) == 1 and out[0].origin == "greedy+trim"
+    assert np.array_equal(np.sort(out[0].info["vertices"]), np.arange(n))
+    r, t = transform_errors(out[0].T_target_source, T_true)
+    assert r < 1e-6 and t < 1e-6
+    # at most `rounds` drops: one round leaves one wrong association in
+    out1 = _trimmed(hyps, src, tgt, A, W, (1.0, 5.0), 3, 1e3, 1)
+    assert len(out1) == 1 and len(out1[0].info["vertices"]) == n + 1
+
+
+def test_wide_search_runs_only_after_an_invalid_first_pass():
+    """A valid first pass is returned as it is (bit for bit what wide_search='never' returns);
+    an invalid one is searched again and the wide pass's result is returned (what
+    wide_search='always' returns)."""
+    from graffmatch.verification.config import VerificationConfig
+
+    def matcher(mode: str) -> GraffMatcher:
+        return GraffMatcher(GraffMatchConfig(verification=VerificationConfig(wide_search=mode)))
+
+    def scene(seed: int) -> LandmarkSet:  # poles and walls under a canopy (which fixes the height)
+        ls = _scene_with_points(np.random.default_rng(seed))
+        r = np.random.default_rng(seed + 100)
+        roof = np.c_[r.uniform(-10, 10, 400), r.uniform(-10, 10, 400), np.full(400, 7.0)]
+        return LandmarkSet.from_arrays(np.r_[ls.types, 2], np.r_[ls.directions, [[0, 0, 1.0]]],
+                                       np.r_[ls.anchors, [[0, 0, 7.0]]], None, np.vstack([ls.points, roof]),
+                                       np.r_[ls.point_offsets, ls.point_offsets[-1] + 400])
+
+    tgt = scene(5)
+    T_true = make_transform(rot_z(0.7), [3.0, 2.0, 0.0])
+    src = tgt.transform(invert(T_true))
+    r_default, r_first = matcher("when_invalid").match(src, tgt), matcher("never").match(src, tgt)
+    assert r_default.valid and r_default.info["search"] == "first"
+    assert np.array_equal(r_default.T_target_source, r_first.T_target_source)
+    assert not _wrong(r_default, T_true)
+    other = scene(6)  # another place: no valid answer
+    r_default, r_wide = matcher("when_invalid").match(other, tgt), matcher("always").match(other, tgt)
+    assert not matcher("never").match(other, tgt).valid
+    assert not r_default.valid and r_default.info["search"] == "wide"
+    assert np.array_equal(r_default.T_target_source, r_wide.T_target_source)
+    assert r_default.message == r_wide.message and r_default.overlap == r_wide.overlap
