@@ -219,10 +219,12 @@ def test_landmark_overlap_equals_the_numpy_reference(seed, n_poles, n_planes, H,
     c_ref: list = []
     new = E.landmark_overlap(sc.source, sc.target, Ts, counts=c_new)
     ref = E._landmark_overlap_reference(sc.source, sc.target, Ts, counts=c_ref)
-    np.testing.assert_allclose(new, ref, rtol=0, atol=1e-12)
+    # Fractions in [0, 1] summed in another order: 1.1e-12 apart was seen (random seed 140), so
+    # 1e-10 (a hundred times that) while the counts below must agree exactly.
+    np.testing.assert_allclose(new, ref, rtol=0, atol=1e-10)
     np.testing.assert_array_equal(c_new[0], c_ref[0])
     one = E.landmark_overlap(sc.source, sc.target, Ts[0])
-    assert one.shape == (2,) and np.allclose(one, ref[0], rtol=0, atol=1e-12)
+    assert one.shape == (2,) and np.allclose(one, ref[0], rtol=0, atol=1e-10)
 
 
 @SETTINGS
