@@ -227,37 +227,37 @@ def _align_step(P: NDArray[np.float64], T: NDArray[np.float64], spts: NDArray[np
     cand = np.empty(n_p, np.int64)
     m = _moved_near(P, r00, r01, r02, t0, r10, r11, r12, t1, r20, r21, r22, t2, near, near_lo, near_dims,
                     near_inv, q, cand)
-    rows = np.full(n_p, -1, np.int64)  # local: no store into an argument in the search loop
     found = np.empty(m, np.int64)
     for k in range(m):  # the search alone in this loop: LLVM keeps the grid in registers
         found[k] = _nearest_in_grid(q[k, 0], q[k, 1], q[k, 2], spts, h, inv_h, origin, dims, dense, tk, tv, starts,
                                     r2, True)
-    for k in range(m):
-        rows[cand[k]] = found[k]
+    # the pairs in row order (cand is ascending): the sums below add the same terms in the same
+    # order as a pass over every row of P would
     n = 0
     sa0 = sa1 = sa2 = sb0 = sb1 = sb2 = 0.0
-    for a in range(P.shape[0]):
-        bi = rows[a]
+    for k in range(m):
+        bi = found[k]
         if bi >= 0:
-            px, py, pz = P[a, 0], P[a, 1], P[a, 2]
+            a = cand[k]
             n += 1
-            sa0 += px
-            sa1 += py
-            sa2 += pz
+            sa0 += P[a, 0]
+            sa1 += P[a, 1]
+            sa2 += P[a, 2]
             sb0 += spts[bi, 0]
             sb1 += spts[bi, 1]
             sb2 += spts[bi, 2]
     if n < min_pairs:
         return n
-    ca = np.array([sa0, sa1, sa2]) / n
-    cb = np.array([sb0, sb1, sb2]) / n
+    ca0, ca1, ca2 = sa0 / n, sa1 / n, sa2 / n
+    cb0, cb1, cb2 = sb0 / n, sb1 / n, sb2 / n
     H = np.zeros((3, 3))
-    for a in range(P.shape[0]):
-        bi = rows[a]
+    for k in range(m):
+        bi = found[k]
         if bi < 0:
             continue
-        a0, a1, a2 = P[a, 0] - ca[0], P[a, 1] - ca[1], P[a, 2] - ca[2]
-        b0, b1, b2 = spts[bi, 0] - cb[0], spts[bi, 1] - cb[1], spts[bi, 2] - cb[2]
+        a = cand[k]
+        a0, a1, a2 = P[a, 0] - ca0, P[a, 1] - ca1, P[a, 2] - ca2
+        b0, b1, b2 = spts[bi, 0] - cb0, spts[bi, 1] - cb1, spts[bi, 2] - cb2
         H[0, 0] += a0 * b0
         H[0, 1] += a0 * b1
         H[0, 2] += a0 * b2
@@ -275,10 +275,11 @@ def _align_step(P: NDArray[np.float64], T: NDArray[np.float64], spts: NDArray[np
     if det < 0:
         V[:, 2] = -V[:, 2]
         M = V @ U.T
+    cb = (cb0, cb1, cb2)
     for i in range(3):
         for j in range(3):
             T[i, j] = M[i, j]
-        T[i, 3] = cb[i] - (M[i, 0] * ca[0] + M[i, 1] * ca[1] + M[i, 2] * ca[2])
+        T[i, 3] = cb[i] - (M[i, 0] * ca0 + M[i, 1] * ca1 + M[i, 2] * ca2)
         T[3, i] = 0.0
     T[3, 3] = 1.0
     return n

@@ -355,3 +355,26 @@ def test_cell_hash_and_near_bitmap_equal_their_numpy_specifications(seed, r, off
     np.testing.assert_array_equal(lo, rlo)
     np.testing.assert_array_equal(dims, rdims)
     np.testing.assert_array_equal(bits, rbits)
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), angle=st.sampled_from([0.0, 1e-9, 1e-4, 0.05, 1.0, 3.1415]),
+       same=st.booleans(), nan=st.booleans())
+def test_transform_gap_equals_its_reference_bit_for_bit(seed, angle, same, nan):
+    from graffmatch.verification.decision import _transform_gap_reference, transform_gap
+
+    rng = np.random.default_rng(seed)
+    A = random_transform(rng, max_translation=20.0)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    dR = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+    B = A.copy()
+    if not same:
+        B[:3, :3] = dR @ A[:3, :3]
+        B[:3, 3] += rng.normal(size=3)
+    if nan:
+        B[0, 0] = np.nan
+    got, want = transform_gap(A, B), _transform_gap_reference(A, B)
+    assert np.array(got).tobytes() == np.array(want).tobytes()
+    assert all(isinstance(x, float) for x in got)
