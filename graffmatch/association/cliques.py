@@ -190,7 +190,8 @@ def clique_objectives(W: sp.csr_matrix, cliques: list[NDArray[np.int64]]) -> NDA
         return np.zeros(0)
     indptr, indices, data = _csr64(W)
     flat = np.concatenate([np.asarray(c, np.int64).reshape(-1) for c in cliques])
-    off = np.r_[0, np.cumsum([len(c) for c in cliques])].astype(np.int64)
+    off = np.zeros(len(cliques) + 1, np.int64)
+    off[1:] = np.cumsum([len(c) for c in cliques])
     return _objectives(indptr, indices, data, flat, off, W.shape[0])
 
 

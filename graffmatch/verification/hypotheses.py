@@ -293,7 +293,7 @@ def local_perturbations(
     D[:, 0, 0], D[:, 0, 1], D[:, 1, 0], D[:, 1, 1] = c, -s_, s_, c
     D[:, 2, 2] = D[:, 3, 3] = 1.0
     # rotate about the centre, then shift: x -> R (x - c) + c + d
-    D[:, :3, 3] = centre - np.einsum("hij,j->hi", D[:, :3, :3], centre) + np.c_[dx, dy, np.zeros_like(dx)]
+    D[:, :3, 3] = centre - np.einsum("hij,j->hi", D[:, :3, :3], centre) + np.stack((dx, dy, np.zeros_like(dx)), axis=1)
     return D @ T_target_source
 
 

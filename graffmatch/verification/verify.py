@@ -84,7 +84,7 @@ def _register(
         b = register_batch(source, target, A, groups, None, kappa_max, len(cands))
     except DegenerateGeometryError:
         return []
-    bounds = np.r_[0, np.cumsum(lengths)].tolist()
+    bounds = [0, *np.cumsum(lengths).tolist()]
     objectives = clique_objectives(W, verts).tolist()
     kappa, degenerate = b.kappa.tolist(), b.degenerate.tolist()
     Ts, off, ang = list(b.T_target_source), b.offset_residuals, b.angle_residuals_deg
@@ -116,7 +116,7 @@ def _gated(hyps: list[Hypothesis], gate: tuple[float, float], min_assoc: int) ->
     res = [h.info["residuals"] for h in hyps]  # the masks of all hypotheses in one pass
     lengths = np.array([len(r[0]) for r in res], dtype=np.int64)
     keep = (np.concatenate([r[0] for r in res]) <= gate[0]) & (np.concatenate([r[1] for r in res]) <= gate[1])
-    bounds = np.r_[0, np.cumsum(lengths)]
+    bounds = np.concatenate(([0], np.cumsum(lengths)))
     kept = np.bincount(np.repeat(np.arange(len(hyps)), lengths), weights=keep, minlength=len(hyps))
     out = []
     for i in np.flatnonzero((kept >= min_assoc) & (kept < lengths)).tolist():
