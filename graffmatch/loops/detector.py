@@ -31,7 +31,7 @@ from graffmatch.loops.retrieval import RetrievalConfig, eligible_count, make_ret
 from graffmatch.loops.verify import LoopClosure, VerificationConfig, verify_query
 from graffmatch.matcher import GraffMatchConfig
 from graffmatch.pipeline import ScanMatcher, ScanMatcherConfig
-from graffmatch.verification.evidence import non_ground_support, voxel_downsample
+from graffmatch.verification.evidence import evidence_points as matcher_evidence_points
 
 
 class LoopDetectorConfig(BaseModel):
@@ -81,14 +81,9 @@ class LoopDetector:
     def evidence_points(self, landmarks: LandmarkSet) -> NDArray[np.float32] | None:
         """The verified matcher's evidence cloud of a scan's landmarks (non-ground support points,
         its voxel size and cap), on the database's storage grid; None without points."""
-        pts = non_ground_support(landmarks)
-        if pts is None:
-            return None
         v = self.config.matcher.verification
-        P = voxel_downsample(pts, v.voxel, v.max_points)
-        if len(P) < 10:
-            return None
-        return decode_points(encode_points(P))
+        P = matcher_evidence_points(landmarks, v.voxel, v.max_points)
+        return None if P is None else decode_points(encode_points(P))
 
     def add(
         self,

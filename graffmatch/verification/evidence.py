@@ -303,13 +303,21 @@ def non_ground_support(landmarks: LandmarkSet) -> NDArray[np.float32] | None:
     return landmarks.points[mask]
 
 
-def support_cloud(landmarks: LandmarkSet, voxel: float = 0.3, max_points: int = 1500) -> SupportCloud | None:
-    """Evidence points of one landmark set (None when it carries too few support points)."""
+def evidence_points(landmarks: LandmarkSet, voxel: float = 0.3, max_points: int = 1500) -> NDArray[np.float64] | None:
+    """The points a set is verified on: its non-ground support voxelised (at most ``max_points``),
+    or None when it carries fewer than 10 (too few to score a hypothesis). The loop database
+    stores exactly these for landmark-poor scans."""
     pts = non_ground_support(landmarks)
     if pts is None:
         return None
     P = voxel_downsample(pts, voxel, max_points)
-    if len(P) < 10:
+    return P if len(P) >= 10 else None
+
+
+def support_cloud(landmarks: LandmarkSet, voxel: float = 0.3, max_points: int = 1500) -> SupportCloud | None:
+    """Evidence points of one landmark set (None when it carries too few support points)."""
+    P = evidence_points(landmarks, voxel, max_points)
+    if P is None:
         return None
     pose = landmarks.sensor_pose
     free = None if pose is None else voxel_downsample(landmarks.points, voxel, 2 * max_points)  # type: ignore[arg-type]
