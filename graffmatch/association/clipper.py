@@ -170,16 +170,28 @@ class ClipperSolution:
         )
 
 
+@nb.njit(cache=True, inline="always")
+def _row(indptr, indices, data, r):
+    """Row r's column indices and weights as slices. A loop ``for k in range(indptr[r],
+    indptr[r + 1])`` indexes with a k numba cannot prove non-negative, so every access carries
+    a wrap-around select, which LLVM turns into a gather of ``data`` (W2: 2.7 ms a mat-vec);
+    over slices the index runs from 0 and the loads are contiguous (1.3 ms, the same sums)."""
+    lo = indptr[r]
+    hi = indptr[r + 1]
+    return indices[lo:hi], data[lo:hi]
+
+
 @nb.njit(cache=True, fastmath=True)
 def _matvecs(indptr, indices, data, u, Mu, Cu):
     """Mu = (W + I) u and Cu = (A + I) u (A: the edge pattern) in one row-wise pass."""
     m = u.shape[0]
     for r in range(m):
+        cols, w = _row(indptr, indices, data, r)
         sw = u[r]
         sc = u[r]
-        for k in range(indptr[r], indptr[r + 1]):
-            x = u[indices[k]]
-            sw += data[k] * x
+        for k in range(cols.shape[0]):
+            x = u[cols[k]]
+            sw += w[k] * x
             sc += x
         Mu[r] = sw
         Cu[r] = sc
@@ -191,9 +203,10 @@ def _wmatvec(indptr, indices, data, u, Mu):
     second accumulator; ~10 % cheaper)."""
     m = u.shape[0]
     for r in range(m):
+        cols, w = _row(indptr, indices, data, r)
         sw = u[r]
-        for k in range(indptr[r], indptr[r + 1]):
-            sw += data[k] * u[indices[k]]
+        for k in range(cols.shape[0]):
+            sw += w[k] * u[cols[k]]
         Mu[r] = sw
 
 
@@ -207,10 +220,11 @@ def _matvecs_from_support(indptr, indices, data, u, support, Mu, Cu):
         x = u[v]
         Mu[v] += x
         Cu[v] += x
-        for k in range(indptr[v], indptr[v + 1]):
-            w = indices[k]
-            Mu[w] += data[k] * x
-            Cu[w] += x
+        cols, w = _row(indptr, indices, data, v)
+        for k in range(cols.shape[0]):
+            c = cols[k]
+            Mu[c] += w[k] * x
+            Cu[c] += x
 
 
 @nb.njit(cache=True)
@@ -274,14 +288,16 @@ def _qmatvec_rows(indptr, indices, data, dense, x, rows, d, Qx):
             xr = x[r]
             if xr != 0.0:
                 Qx[r] += dd * xr
-                for k in range(indptr[r], indptr[r + 1]):
-                    Qx[indices[k]] += (data[k] + d) * xr
+                cols, w = _row(indptr, indices, data, r)
+                for k in range(cols.shape[0]):
+                    Qx[cols[k]] += (w[k] + d) * xr
         return
     for i in range(n):
         r = rows[i]
+        cols, w = _row(indptr, indices, data, r)
         s = 0.0
-        for k in range(indptr[r], indptr[r + 1]):
-            s += (data[k] + d) * x[indices[k]]
+        for k in range(cols.shape[0]):
+            s += (w[k] + d) * x[cols[k]]
         Qx[r] = s + dd * x[r]
 
 
@@ -304,8 +320,9 @@ def _dense_block(indptr, indices, data, rows, d, store):
             row = out[i]
             for j in range(n):
                 row[j] = nd
-            for k in range(indptr[i], indptr[i + 1]):
-                row[indices[k]] = data[k]
+            cols, w = _row(indptr, indices, data, i)
+            for k in range(cols.shape[0]):
+                row[cols[k]] = w[k]
             row[i] = 1.0
         return out
     pos = np.full(m, n, dtype=np.int64)
@@ -315,9 +332,9 @@ def _dense_block(indptr, indices, data, rows, d, store):
     for i in range(n):
         for j in range(n):
             buf[j] = nd
-        r = rows[i]
-        for k in range(indptr[r], indptr[r + 1]):
-            buf[pos[indices[k]]] = data[k]
+        cols, w = _row(indptr, indices, data, rows[i])
+        for k in range(cols.shape[0]):
+            buf[pos[cols[k]]] = w[k]
         buf[i] = 1.0
         row = out[i]
         for j in range(n):
@@ -410,8 +427,9 @@ def _clamped_trial(u, dirv, step, rows, indptr, indices, data, dense, rows_nnz, 
                     Qv[c] += row[c] * x
                 continue
             Qv[r] += (1.0 + d) * x
-            for k in range(indptr[r], indptr[r + 1]):
-                Qv[indices[k]] += (data[k] + d) * x
+            cols, w = _row(indptr, indices, data, r)
+            for k in range(cols.shape[0]):
+                Qv[cols[k]] += (w[k] + d) * x
     nrm = 0.0
     sv = 0.0
     for i in range(n):
@@ -962,8 +980,9 @@ def _subgraph(indptr, indices, data, keep_mask):
     for v in range(m):
         if keep_mask[v]:
             c = 0
-            for t in range(indptr[v], indptr[v + 1]):
-                c += keep_mask[indices[t]]  # branch-free: a kept/dropped neighbour is a coin flip
+            cols = indices[indptr[v]:indptr[v + 1]]
+            for t in range(cols.shape[0]):
+                c += keep_mask[cols[t]]  # branch-free: a kept/dropped neighbour is a coin flip
             counts[newid[v] + 1] = c
     ip = np.cumsum(counts)
     ind = np.empty(ip[-1] + 1, dtype=indices.dtype)  # + 1: the branch-free copy writes one past a row
@@ -971,11 +990,12 @@ def _subgraph(indptr, indices, data, keep_mask):
     for v in range(m):
         if keep_mask[v]:
             pos = ip[newid[v]]
-            for t in range(indptr[v], indptr[v + 1]):
+            cols, wv = _row(indptr, indices, data, v)
+            for t in range(cols.shape[0]):
                 # write every entry, advance only past kept ones (overwritten otherwise)
-                w = indices[t]
+                w = cols[t]
                 ind[pos] = newid[w]  # fits: the subgraph has fewer vertices
-                dat[pos] = data[t]
+                dat[pos] = wv[t]
                 pos += keep_mask[w]
     return ip, ind[: ip[-1]], dat[: ip[-1]]
 
@@ -1049,10 +1069,11 @@ def _check_graph(indptr, indices, data):
     wdeg = np.zeros(m)
     for r in range(m):
         s = 0.0
-        for k in range(indptr[r], indptr[r + 1]):
-            x = data[k]
+        cols, w = _row(indptr, indices, data, r)
+        for k in range(cols.shape[0]):
+            x = w[k]
             valid &= x >= 0.0 and x <= 1.0 + 1e-12
-            diagonal |= indices[k] == r
+            diagonal |= cols[k] == r
             s += x
         wdeg[r] = s
     return valid, diagonal, wdeg
@@ -1065,8 +1086,9 @@ def _row_sums(indptr, data):
     out = np.zeros(m)
     for r in range(m):
         s = 0.0
-        for k in range(indptr[r], indptr[r + 1]):
-            s += data[k]
+        w = data[indptr[r]:indptr[r + 1]]
+        for k in range(w.shape[0]):
+            s += w[k]
         out[r] = s
     return out
 
@@ -1138,9 +1160,10 @@ def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_wo
         if (skip_covered and covered[s]) or 1.0 + (indptr[s + 1] - indptr[s]) * w_max <= best:
             continue
         n_cand = 0
-        for t in range(indptr[s], indptr[s + 1]):
-            j = indices[t]
-            score[j] = data[t] * allowed[j]  # branch-free: the other vertices keep score 0
+        cols, w = _row(indptr, indices, data, s)
+        for t in range(cols.shape[0]):
+            j = cols[t]
+            score[j] = w[t] * allowed[j]  # branch-free: the other vertices keep score 0
             cand[n_cand] = j
             n_cand += allowed[j]
         work += indptr[s + 1] - indptr[s]
@@ -1165,11 +1188,12 @@ def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_wo
                 is_cand[cand[c]] = True
             is_cand[bi] = False
             score[bi] = 0.0
-            for t in range(indptr[bi], indptr[bi + 1]):
+            cols, w = _row(indptr, indices, data, bi)
+            for t in range(cols.shape[0]):
                 # branch-free: non-candidates (score 0) add exact zeros
-                j = indices[t]
+                j = cols[t]
                 c = is_cand[j]
-                score[j] += data[t] * c
+                score[j] += w[t] * c
                 adjacent[j] |= c
             new_n = 0
             for c in range(n_cand):

@@ -115,21 +115,27 @@ def _row_windows(src_vals, src_a2s, src_start, vals, start, a, b, n_groups, epsi
     (``src_*``: :func:`_row_pair_tables` of the source), so both ends only move forward: one
     merge of two sorted runs per group instead of two binary searches per a2."""
     for t in range(n_groups):
-        lo, hi = start[b, t], start[b, t + 1]
-        k0 = lo
-        k1 = lo
-        for s in range(src_start[a, t], src_start[a, t + 1]):
-            d = src_vals[s]
+        # slices, so that every index runs from 0 (no wrap-around select per access)
+        lo = start[b, t]
+        run = vals[lo:start[b, t + 1]]
+        hi = run.shape[0]
+        s_lo = src_start[a, t]
+        s_vals = src_vals[s_lo:src_start[a, t + 1]]
+        s_a2s = src_a2s[s_lo:src_start[a, t + 1]]
+        k0 = 0
+        k1 = 0
+        for s in range(s_vals.shape[0]):
+            d = s_vals[s]
             x0 = d - epsilon
             x1 = d + epsilon
-            while k0 < hi and vals[k0] <= x0:
+            while k0 < hi and run[k0] <= x0:
                 k0 += 1
             if k1 < k0:
                 k1 = k0
-            while k1 < hi and vals[k1] < x1:
+            while k1 < hi and run[k1] < x1:
                 k1 += 1
-            win0[src_a2s[s]] = k0
-            win1[src_a2s[s]] = k1
+            win0[s_a2s[s]] = lo + k0
+            win1[s_a2s[s]] = lo + k1
 
 
 @nb.njit(cache=True, fastmath=True)
@@ -269,9 +275,10 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
         # the row's weights in one branch-free (vectorised) loop
         _exp_nonpositive(buf_x, buf_w, n, squarings)
         s = 0.0
+        row_w = data[pos:pos + n]
         for t in range(n):
-            data[pos + t] = buf_w[t]
-            s += data[pos + t]
+            row_w[t] = buf_w[t]
+            s += row_w[t]
         wdeg[u] = s
     return indptr, indices[: indptr[m]], data, wdeg
 
