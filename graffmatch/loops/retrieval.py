@@ -9,7 +9,12 @@ best first, lower score = more similar):
 * ``scan-context``: the ring key of Scan Context (Kim & Kim 2018) in a cKDTree, re-ranked by
   the full column-shift distance (``graffmatch.evaluation.baselines.scan_context``);
 * ``radius``: every eligible scan whose position (odometry estimate) lies within R metres of the
-  query's, nearest first.
+  query's, nearest first;
+* ``descriptor+radius``: the descriptor's top-k, then (when odometry positions are given) the
+  eligible scans within R metres plus ``drift_fraction`` of the odometry path between the two
+  scans (a drifting odometry's error grows with the distance travelled), nearest first, at most
+  ``top_k`` more: the descriptor finds places the odometry has drifted away from, the odometry
+  finds places whose descriptor is ambiguous (pole-only open road).
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ from scipy.spatial import cKDTree
 from graffmatch.errors import InvalidInputError
 from graffmatch.loops.database import LandmarkDatabase
 
-RetrieverName = Literal["descriptor", "scan-context", "radius"]
+RetrieverName = Literal["descriptor", "scan-context", "radius", "descriptor+radius"]
 
 
 class RetrievalConfig(BaseModel):
@@ -32,7 +37,9 @@ class RetrievalConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    method: RetrieverName = Field("descriptor", description="descriptor | scan-context | radius")
+    method: RetrieverName = Field(
+        "descriptor", description="descriptor | scan-context | radius | descriptor+radius"
+    )
     top_k: int = Field(
         20, ge=1, le=200,
         description="candidates retrieved per query; all go through the quick check, at most "
@@ -44,6 +51,10 @@ class RetrievalConfig(BaseModel):
     )
     exclude_frames: int = Field(0, ge=0, description="also skip this many most recent scans")
     radius_m: float = Field(10.0, gt=0, description="radius retriever: search radius [m]")
+    drift_fraction: float = Field(
+        0.0, ge=0, description="descriptor+radius: the radius grows by this fraction of the odometry "
+        "path between query and candidate"
+    )
     ring_key_candidates: int = Field(
         10, ge=1, description="scan-context retriever: ring-key neighbours re-ranked by SC distance"
     )
@@ -146,9 +157,46 @@ class RadiusRetriever:
         return order.astype(np.int64), d[order]
 
 
-def make_retriever(config: RetrievalConfig) -> DescriptorRetriever | ScanContextRetriever | RadiusRetriever:
+class DescriptorRadiusRetriever:
+    """The descriptor's top-k, then the scans near the odometry estimate (drift-aware radius).
+
+    Without positions it is the descriptor retriever. Scores are descriptor distances for all."""
+
+    name = "descriptor+radius"
+
+    def __init__(self, config: RetrievalConfig) -> None:
+        self.config = config
+        self._desc = DescriptorRetriever(config)
+        self._P: NDArray | None = None
+        self._path: NDArray | None = None
+
+    def candidates(self, db: LandmarkDatabase, query: int, eligible: int) -> tuple[NDArray, NDArray]:
+        idx, dist = self._desc.candidates(db, query, eligible)
+        if eligible <= 0 or query >= len(db.positions) or db.positions[query] is None:
+            return idx, dist
+        if self._P is None or len(self._P) <= query:
+            if any(p is None for p in db.positions[: query + 1]):
+                raise InvalidInputError("descriptor+radius: positions must be given for every scan or none")
+            self._P = np.stack([np.asarray(p, float) for p in db.positions])
+            steps = np.linalg.norm(np.diff(self._P, axis=0), axis=1)
+            self._path = np.concatenate([[0.0], np.cumsum(steps)])
+        P, path = self._P, self._path
+        d = np.linalg.norm(P[:eligible] - P[query], axis=1)
+        r = self.config.radius_m + self.config.drift_fraction * (path[query] - path[:eligible])
+        keep = np.flatnonzero(d <= r)
+        keep = keep[~np.isin(keep, idx)]
+        keep = keep[np.argsort(d[keep], kind="stable")][: self.config.top_k].astype(np.int64)
+        X = self._desc._X if self._desc._X is not None else db.descriptor_matrix()
+        dd = np.linalg.norm(X[keep] - db.descriptors[query], axis=1) if keep.size else np.zeros(0)
+        return np.concatenate([idx, keep]), np.concatenate([dist, dd])
+
+
+def make_retriever(
+    config: RetrievalConfig,
+) -> DescriptorRetriever | ScanContextRetriever | RadiusRetriever | DescriptorRadiusRetriever:
     return {
         "descriptor": DescriptorRetriever,
         "scan-context": ScanContextRetriever,
         "radius": RadiusRetriever,
+        "descriptor+radius": DescriptorRadiusRetriever,
     }[config.method](config)
