@@ -8,7 +8,10 @@ end-to-end true positive at the default threshold, the first reason along the pi
 partner among the retrieved candidates; every partner rejected by the quick check; partners
 passed but not verified (budget, early stop); the verified matcher's verdict invalid (pose right
 or wrong); valid but too few agreeing landmarks; valid but outside the place radius less the
-margin (estimated distance). Also the reported loops' ground-truth distance and pose errors.
+margin (estimated distance); valid on points with enough agreeing landmarks for the sequence-
+consistency rule but no neighbouring loop agreeing (the records are read through
+``apply_sequence_consistency`` with the drive's drifting odometry, as the benchmark scores them).
+Also the reported loops' ground-truth distance and pose errors.
 ``--messages DRIVE`` re-matches that drive's invalid partners and counts the matcher's messages.
 Untimed; reads the run's records and landmark tables (de-skewed drives as the benchmark made them).
 """
@@ -39,6 +42,7 @@ def main() -> None:
         pose_errors,
         positives,
     )
+    from graffmatch.loops.consistency import apply_sequence_consistency
     from graffmatch.loops.database import load_landmarks
     from graffmatch.loops.detector import LoopDetector
     from graffmatch.loops.sequence import prepare_drive, read_queries
@@ -49,11 +53,13 @@ def main() -> None:
     if COURTYARD.is_dir():
         drives.append(("balm_courtyard", COURTYARD.resolve(), False))
     for name, path, deskew in drives:
-        ds, _ = prepare_drive(open_dataset("folder", path), "drift" if deskew else None, deskew)
+        ds, odo = prepare_drive(open_dataset("folder", path), "drift" if deskew else None, deskew)
         run = args.out / ds.name / "ours" if deskew else args.out / "as-recorded" / ds.name / "ours"
         if not (run / "summary.json").is_file():
             continue
-        recs = read_queries(run)
+        recs = apply_sequence_consistency(read_queries(run), odo, v)
+        n_cons = sum("consistent_with" in c and c["confidence"] >= v.min_confidence
+                     for r in recs.values() for c in r["candidates"])
         n_lm = np.array([len(load_landmarks(run / "landmarks" / f"{i:06d}.npz")) for i in range(len(ds))])
         P = np.asarray(ds.poses)
         pos = positives(P, np.asarray(ds.timestamps), cfg.retrieval, 5.0)
@@ -89,6 +95,9 @@ def main() -> None:
                     invalid.append((int(q), int(c["match"])))
                 elif c["confidence"] == 0 and np.linalg.norm(T[:3, 3]) > v.max_translation_m - v.place_margin_m:
                     k = "valid, estimated beyond radius - margin"
+                elif c["confidence"] == 0 and c.get("on_points") and odo is not None and (
+                        c["n_agreeing"] >= v.consistency_min_agreeing):
+                    k = "valid on points, weak, no agreeing neighbour loop"
                 elif c["confidence"] == 0:
                     k = "valid, too few agreeing landmarks"
                 else:
@@ -98,7 +107,8 @@ def main() -> None:
         e = np.array(errs).reshape(-1, 3)
         print(f"{ds.name}: {int(pos.sum())} positives, {sum(why.values())} missed; {len(e)} reported, "
               f"ground truth <= {e[:, 0].max():.2f} m, rotation <= {e[:, 1].max():.2f} deg (median "
-              f"{np.median(e[:, 1]):.2f}), translation <= {e[:, 2].max():.2f} m (median {np.median(e[:, 2]):.3f})")
+              f"{np.median(e[:, 1]):.2f}), translation <= {e[:, 2].max():.2f} m (median {np.median(e[:, 2]):.3f}); "
+              f"{n_cons} candidates accepted by sequence consistency")
         for k, n in why.most_common():
             print(f"    {n:3d} {k} (queries with < 6 landmarks: {poor[k]})")
         if name in args.messages or ds.name in args.messages:

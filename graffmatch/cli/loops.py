@@ -15,6 +15,7 @@ class Retriever(str, Enum):
     descriptor = "descriptor"
     scan_context = "scan-context"
     radius = "radius"
+    descriptor_radius = "descriptor+radius"
 
 
 class LoopExecutor(str, Enum):
@@ -95,6 +96,11 @@ def loops(
     deskew: Annotated[
         bool, typer.Option(help="De-skew raw scans with the odometry's motion first (KITTI ships them de-skewed).")
     ] = False,
+    use_odometry: Annotated[
+        bool,
+        typer.Option(help="Load --odometry even without --optimize/--deskew: weak point-verified loops are "
+                     "then accepted when a neighbouring query's loop agrees through it (sequence consistency)."),
+    ] = False,
 ) -> None:
     """Find every loop closure of a drive: landmarks per scan, retrieval, verified matching."""
     from graffmatch.loops.detector import LoopDetectorConfig
@@ -121,13 +127,14 @@ def loops(
     cfg.verification.stop_when_accepted = not all_loops
     cfg = LoopDetectorConfig.model_validate(cfg.model_dump())
     out_dir = output or run_dir(STATE.runs_dir, "loops")
-    need_odometry = optimize or deskew or retriever == Retriever.radius
+    need_odometry = optimize or deskew or use_odometry or retriever in (Retriever.radius, Retriever.descriptor_radius)
     ds, odo = prepare_drive(ds, odometry if need_odometry else None, deskew,
                             OdometryDriftConfig(yaw_bias_deg_per_100m=drift_yaw, seed=drift_seed))
     with make_progress() as progress:
         summary = run_loops(
             ds, out_dir, cfg, executor=executor.value, workers=workers, address=address,
             positions=None if odo is None else odo[:, :3, 3], progress=_progress_callback(progress),
+            odometry=odo,
         )
     out.print(
         f"{summary['n_loops']} loops in {summary['n_queries_with_loop']} of {summary['n_scans']} scans "

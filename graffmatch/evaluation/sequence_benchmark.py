@@ -129,13 +129,15 @@ def evaluate_method(run: MethodRun, poses: Array, timestamps: Array, retrieval: 
 
 # ---- methods ------------------------------------------------------------------------------------
 def run_ours(dataset, out_dir: Path, config: LoopDetectorConfig | None = None, workers: int | None = None,
-             progress: Callable | None = None) -> MethodRun:
-    """GraffMatch loops: every candidate verified; the most confident one per query is scored."""
+             progress: Callable | None = None, odometry: Array | None = None) -> MethodRun:
+    """GraffMatch loops: the most confident verified candidate per query is scored (``odometry``:
+    (n, 4, 4) poses for the sequence-consistency rule, as ``graffmatch loops`` uses them)."""
+    from graffmatch.loops.consistency import apply_sequence_consistency
     from graffmatch.loops.sequence import read_queries, run_loops
 
     cfg = (config or LoopDetectorConfig()).model_copy(deep=True)
-    summary = run_loops(dataset, out_dir, cfg, workers=workers, progress=progress)
-    recs = read_queries(out_dir)
+    summary = run_loops(dataset, out_dir, cfg, workers=workers, progress=progress, odometry=odometry)
+    recs = apply_sequence_consistency(read_queries(out_dir), odometry, cfg.verification)
     preds, cands = [], {}
     for q, r in recs.items():
         cs = [c for c in r["candidates"] if c["T"] is not None]
@@ -250,7 +252,7 @@ def run_sequence_benchmark(
     cfg = config or benchmark_config()
     results = []
     for seq in sequences:
-        ds, _ = prepare_drive(open_dataset("folder", seq), odometry if deskew else None, deskew, drift)
+        ds, odo = prepare_drive(open_dataset("folder", seq), odometry if deskew else None, deskew, drift)
         if extract_only:
             from graffmatch.loops.sequence import build_database
 
@@ -259,7 +261,7 @@ def run_sequence_benchmark(
         poses, times = np.asarray(ds.poses), np.asarray(ds.timestamps)
         for m in methods:
             if m == "ours":
-                run = run_ours(ds, out_dir / ds.name / "ours", cfg, workers, progress)
+                run = run_ours(ds, out_dir / ds.name / "ours", cfg, workers, progress, odometry=odo)
             elif m == "scan-context-icp":
                 run = run_scan_context_icp(ds, cfg.retrieval, progress=progress)
             elif m == "mapclosures-gt":

@@ -19,6 +19,7 @@ from graffmatch.errors import InvalidInputError
 from graffmatch.evaluation.loop_closures import keep_most_salient
 from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.lidar.extractor import LandmarkExtractor, LandmarkExtractorConfig
+from graffmatch.loops.consistency import apply_sequence_consistency
 from graffmatch.loops.database import (
     LandmarkDatabase,
     decode_points,
@@ -64,6 +65,8 @@ class LoopDetector:
         self.scan_matcher = ScanMatcher(ScanMatcherConfig(extractor=extractor, matcher=self.config.matcher))
         self.matcher = self.scan_matcher
         self.timings: dict[str, list[float]] = {"extract": [], "retrieve": [], "verify": []}
+        self._poses: list[NDArray | None] = []  # odometry poses given to add(), for consistency
+        self._recent: dict[int, dict] = {}  # verification records of the last queries
 
     @property
     def extractor(self) -> LandmarkExtractor:
@@ -90,12 +93,17 @@ class LoopDetector:
         scan: Any,
         timestamp: float | None = None,
         position: NDArray | None = None,
+        pose: NDArray | None = None,
     ) -> list[LoopClosure]:
         """Add a scan and return its verified loop closures (best confidence first).
 
         ``scan``: a :class:`graffmatch.datasets.base.Scan`, an (N, 3|4) point array, or a
         :class:`LandmarkSet` already extracted. ``timestamp`` defaults to the scan's (or the
-        index); ``position`` (odometry estimate) is needed by the radius retriever only.
+        index); ``position`` (odometry estimate) is needed by the radius retrievers only;
+        ``pose`` (4x4 odometry pose, world <- scan; its translation serves as ``position``) lets
+        a weak point-verified loop count when an earlier query's loop agrees with it
+        (:mod:`.consistency`; online only the earlier side of the window is known, so
+        ``graffmatch loops`` may confirm a few more).
         """
         t0 = time.perf_counter()
         sc = None
@@ -120,7 +128,14 @@ class LoopDetector:
             raise InvalidInputError(
                 f"timestamps must not decrease: {timestamp} after {self.db.timestamps[-1]}"
             )
+        if pose is not None:
+            pose = np.asarray(pose, float)
+            if pose.shape != (4, 4):
+                raise InvalidInputError(f"pose must be a 4x4 matrix, got {pose.shape}")
+            if position is None:
+                position = pose[:3, 3]
         ls, desc = self.prepare(ls)
+        self._poses.append(pose)
         self.timings["extract"].append(time.perf_counter() - t0)
         extra = {"scan_context": sc} if sc is not None else {}
         q = self.db.add(ls, desc, timestamp, position, **extra)
@@ -139,6 +154,20 @@ class LoopDetector:
             cache[i] = quick_index(self.db.landmarks[i], self.config.quick)
         return cache[i]
 
+    def _consistent(self, query: int, recs: list[dict]) -> list[dict]:
+        """The query's records with its weak loops that an earlier query's loop confirms."""
+        W = self.config.verification.consistency_window
+        if W <= 0:
+            return recs
+        self._recent[query] = {"query": query, "candidates": recs}
+        for q in [q for q in self._recent if q < query - W]:
+            del self._recent[q]
+        if len(self._poses) <= query or any(p is None for p in self._poses[: query + 1]):
+            return recs
+        window = {q: r for q, r in self._recent.items() if q <= query}
+        out = apply_sequence_consistency(window, np.stack(self._poses[: query + 1]), self.config.verification)
+        return out[query]["candidates"]
+
     def detect(self, query: int) -> list[LoopClosure]:
         """Retrieve and verify the candidates of a scan already in the database."""
         t1 = time.perf_counter()
@@ -150,6 +179,7 @@ class LoopDetector:
             query, list(zip(idx.tolist(), dist.tolist(), strict=True)), self.db.landmarks.__getitem__,
             self.quick_index, self.matcher, self.config.verification, self.config.quick,
         )
+        recs = self._consistent(query, recs)
         out = []
         for r in recs:
             if r["T"] is None:
@@ -165,7 +195,8 @@ class LoopDetector:
                 retrieval_rank=r["rank"],
                 retrieval_distance=r["retrieval_distance"],
                 valid=r["confidence"] >= self.config.verification.min_confidence,
-                info={"seconds": r["seconds"], "rms_offset": r["rms_offset"], "quick_score": r["quick_score"]},
+                info={"seconds": r["seconds"], "rms_offset": r["rms_offset"], "quick_score": r["quick_score"],
+                      "consistent_with": r.get("consistent_with")},
             ))
         self.timings["verify"].append(time.perf_counter() - t2)
         self.last_candidates = out

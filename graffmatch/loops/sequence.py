@@ -39,6 +39,7 @@ from graffmatch.datasets.base import Dataset
 from graffmatch.errors import InvalidInputError, MalformedFileError
 from graffmatch.evaluation.executors import make_executor
 from graffmatch.geometry.pose_files import write_kitti, write_tum
+from graffmatch.loops.consistency import apply_sequence_consistency
 from graffmatch.loops.database import (
     POINT_QUANTUM_M,
     LandmarkDatabase,
@@ -235,7 +236,7 @@ def loops_from_records(records: dict[int, dict], min_confidence: float) -> list[
                     retrieval_rank=c["rank"],
                     retrieval_distance=c["retrieval_distance"],
                     valid=True,
-                    info={"rms_offset": c.get("rms_offset")},
+                    info={"rms_offset": c.get("rms_offset"), "consistent_with": c.get("consistent_with")},
                 )
             )
     return out
@@ -337,11 +338,15 @@ def run_loops(
     positions: NDArray | None = None,
     progress: Progress | None = None,
     chunk_size: int = 20,
+    odometry: NDArray | None = None,
 ) -> dict:
     """Detect the loop closures of a whole drive; writes the files listed in the module doc.
 
     ``positions`` (n, 3): odometry estimates, needed by the radius retriever and written as
-    g2o vertices. Returns the summary (also in ``summary.json``).
+    g2o vertices. ``odometry`` (n, 4, 4): odometry poses (world <- scan, drift allowed), with
+    which weak point-verified loops are accepted when a neighbouring query's loop agrees
+    (:mod:`.consistency`); their positions serve as ``positions`` when those are not given.
+    Returns the summary (also in ``summary.json``).
     """
     config = config or LoopDetectorConfig()
     out = Path(out_dir)
@@ -350,6 +355,12 @@ def run_loops(
     (out / "config.yaml").write_text(yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False))
     db, stats = build_database(dataset, out, config, executor, workers, address, progress)
     n = len(db)
+    if odometry is not None:
+        odometry = np.asarray(odometry, float)
+        if odometry.shape != (n, 4, 4):
+            raise InvalidInputError(f"odometry must be ({n}, 4, 4) poses, got {odometry.shape}")
+        if positions is None:
+            positions = odometry[:, :3, 3]
     if positions is not None:
         positions = np.asarray(positions, float)
         if positions.shape != (n, 3):
@@ -411,7 +422,8 @@ def run_loops(
             finally:
                 ex.close()
     verify_wall = time.perf_counter() - t1
-    loops = loops_from_records(done, config.verification.min_confidence)
+    final = apply_sequence_consistency(done, odometry, config.verification)
+    loops = loops_from_records(final, config.verification.min_confidence)
     write_loops_csv(out / "loops.csv", loops)
     write_g2o(out / "loops.g2o", loop_edges(loops))  # vertices: posegraph.g2o (--optimize)
     n_verified = sum(c.get("verified", True) for r in done.values() for c in r["candidates"])
@@ -424,6 +436,7 @@ def run_loops(
         "n_queries_with_loop": len({lc.query for lc in loops}),
         "n_candidates_retrieved": n_retrieved,
         "n_candidates_verified": n_verified,
+        "n_loops_sequence_consistent": sum(lc.info.get("consistent_with") is not None for lc in loops),
         "quick_index_cpu_s": sum(r.get("index_s", 0.0) for r in done.values()),
         "retrieval": config.retrieval.method,
         "top_k": config.retrieval.top_k,

@@ -43,6 +43,14 @@ EVIDENCE_POINTS_BELOW = 12
 QUICK_TRANSLATION_MIN_INLIERS = 4
 #: Fewest agreeing landmarks when both scans carry evidence points (the matcher verified on points).
 POINTS_MIN_AGREEING = 6
+#: Sequence consistency of weak point-verified loops (loops/consistency.py; needs odometry): a
+#: loop verified on points with 4-5 agreeing landmarks counts when a query at most 2 frames away
+#: has a loop that agrees through the odometry within 0.5 m / 2 deg. Chosen on the calibration
+#: drives (bench/loops_calibration_consistency.py, bench/results/loops_calibration_consistency.json).
+CONSISTENCY_WINDOW = 2
+CONSISTENCY_MIN_AGREEING = 4
+CONSISTENCY_MAX_M = 0.5
+CONSISTENCY_MAX_DEG = 2.0
 
 
 class VerificationConfig(BaseModel):
@@ -103,6 +111,23 @@ class VerificationConfig(BaseModel):
         description="fewest agreeing landmarks instead of min_agreeing when both scans carry evidence "
         "points, so that the verified matcher decided on points (a scan kept its points because it has "
         "few landmarks; chosen on the calibration drives, bench/loops_calibration_points.py)",
+    )
+    consistency_window: int = Field(
+        CONSISTENCY_WINDOW,
+        ge=0,
+        description="with odometry: a pair verified on points with at least consistency_min_agreeing "
+        "(but fewer than points_min_agreeing) agreeing landmarks is a loop when a query at most this "
+        "many frames away has a loop that agrees with it through the odometry (loops/consistency.py); "
+        "0: off",
+    )
+    consistency_min_agreeing: int = Field(
+        CONSISTENCY_MIN_AGREEING, ge=1, description="fewest agreeing landmarks of such a weak loop"
+    )
+    consistency_max_m: float = Field(
+        CONSISTENCY_MAX_M, gt=0, description="largest translation disagreement of two consistent loops [m]"
+    )
+    consistency_max_deg: float = Field(
+        CONSISTENCY_MAX_DEG, gt=0, description="largest rotation disagreement of two consistent loops [deg]"
     )
     max_landmarks_per_type: int | None = Field(
         40, ge=2, description="match at most this many landmarks of a type (largest first)"

@@ -1,0 +1,109 @@
+"""Sequence consistency: a weak loop is accepted only when a neighbouring query's loop agrees.
+
+A landmark-poor pair (both scans keep evidence points, so the verified matcher decided on points)
+often shows fewer agreeing landmarks than ``points_min_agreeing`` however right its pose is: a
+street of plain facades has three to five landmarks. Such a *weak* loop q -> m is accepted when
+another query q' at most ``consistency_window`` frames away has a verified loop q' -> m' (accepted
+or weak) that agrees with it through the odometry: the odometry's motion q -> q' and the chain
+q -> m -> m' -> q' (the two loops and the odometry's motion m -> m') must give the same relative
+pose within ``consistency_max_m`` / ``consistency_max_deg``. Only short odometry segments enter
+(q -> q', m -> m'), so a drifting odometry suffices. Two independent verifications of different
+scans rarely agree on a wrong place by chance. Without odometry nothing changes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graffmatch.errors import InvalidInputError
+from graffmatch.loops.verify import VerificationConfig, loop_confidence
+
+
+def _inv(T: NDArray) -> NDArray:
+    R, t = T[:3, :3], T[:3, 3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ t
+    return out
+
+
+def loop_pair_residual(
+    odometry: NDArray, q: int, m: int, T_m_q: NDArray, q2: int, m2: int, T_m2_q2: NDArray
+) -> tuple[float, float]:
+    """(translation m, rotation deg) by which two loops q -> m, q2 -> m2 disagree through the
+    odometry poses (world <- scan): odometry q -> q2 against T_m_q^-1 (odometry m -> m2) T_m2_q2."""
+    A = _inv(odometry[q]) @ odometry[q2]
+    B = _inv(T_m_q) @ _inv(odometry[m]) @ odometry[m2] @ T_m2_q2
+    E = _inv(A) @ B
+    cos = np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.linalg.norm(E[:3, 3])), float(np.degrees(np.arccos(cos)))
+
+
+def _base_confidence(c: dict, config: VerificationConfig, relaxed: VerificationConfig | None = None) -> float:
+    T = np.asarray(c["T"], float).reshape(4, 4)
+    return loop_confidence(
+        bool(c.get("matcher_valid", False)), c.get("matcher_confidence"), int(c["n_agreeing"]),
+        float(c["overlap"]), float(np.linalg.norm(T[:3, 3])), relaxed or config, bool(c.get("on_points", False)),
+    )
+
+
+def apply_sequence_consistency(
+    records: dict[int, dict], odometry: NDArray | None, config: VerificationConfig
+) -> dict[int, dict]:
+    """Records with the weak loops that a neighbouring query's loop confirms accepted.
+
+    ``records``: query -> record (``queries.jsonl``), candidates as :func:`verify_query` wrote
+    them; only verified ones count. A candidate is weak when its confidence is below
+    ``min_confidence`` but reaches it with ``consistency_min_agreeing`` agreeing landmarks for a
+    pair verified on points. A confirmed weak candidate gets that confidence and
+    ``consistent_with`` = [q', m']; nothing else changes. The records are not modified in place.
+    """
+    if odometry is None or config.consistency_window <= 0:
+        return records
+    P = np.asarray(odometry, float)
+    if P.ndim != 3 or P.shape[1:] != (4, 4):
+        raise InvalidInputError(f"odometry must be (n, 4, 4) poses, got shape {P.shape}")
+    relaxed = config.model_copy(update={"points_min_agreeing": min(config.points_min_agreeing,
+                                                                   config.consistency_min_agreeing)})
+    strong: dict[int, list[tuple[int, NDArray]]] = {}
+    weak: dict[tuple[int, int], float] = {}
+    for q, r in records.items():
+        for k, c in enumerate(r["candidates"]):
+            if c.get("T") is None or not c.get("verified", True) or not c.get("matcher_valid", False):
+                continue
+            if int(q) >= len(P) or int(c["match"]) >= len(P):
+                raise InvalidInputError(f"odometry has {len(P)} poses; the records reach scan "
+                                        f"{max(int(q), int(c['match']))}")
+            conf = float(c["confidence"])
+            if conf < config.min_confidence and c.get("on_points", False):
+                conf_w = _base_confidence(c, config, relaxed)
+                if conf_w >= config.min_confidence:
+                    weak[(int(q), k)] = conf_w
+                    conf = conf_w
+            if conf >= config.min_confidence:
+                strong.setdefault(int(q), []).append((int(c["match"]), np.asarray(c["T"], float).reshape(4, 4)))
+    if not weak:
+        return records
+    out = dict(records)
+    W = config.consistency_window
+    for (q, k), conf_w in sorted(weak.items()):
+        c = records[q]["candidates"][k]
+        m, T = int(c["match"]), np.asarray(c["T"], float).reshape(4, 4)
+        hit = None
+        for q2 in range(q - W, q + W + 1):
+            if q2 == q:
+                continue
+            for m2, T2 in strong.get(q2, []):
+                dt, dr = loop_pair_residual(P, q, m, T, q2, m2, T2)
+                if dt <= config.consistency_max_m and dr <= config.consistency_max_deg:
+                    hit = [q2, m2]
+                    break
+            if hit:
+                break
+        if hit is None:
+            continue
+        if out[q] is records[q]:
+            out[q] = {**records[q], "candidates": list(records[q]["candidates"])}
+        out[q]["candidates"][k] = {**c, "confidence": conf_w, "consistent_with": hit}
+    return out
