@@ -568,10 +568,14 @@ def _set_near_bits_of(P: NDArray[np.float64], inv_v: float, lo: NDArray[np.int64
     second byte is written only when the mask reaches into it, i.e. holds a voxel of the box,
     so it never lies past the bitmap's end."""
     n1, n2 = dims[1], dims[2]
+    px = py = pz = -2  # the previous point's voxel (none: no voxel is at -2)
     for a in range(P.shape[0]):
         x = int(np.floor(P[a, 0] * inv_v)) - lo[0]
         y = int(np.floor(P[a, 1] * inv_v)) - lo[1]
         z = int(np.floor(P[a, 2] * inv_v)) - lo[2]
+        if x == px and y == py and z == pz:
+            continue  # the same bits again (points in cell order share voxels)
+        px, py, pz = x, y, z
         for dx in range(-1, 2):
             for dy in range(-1, 2):
                 f = ((x + dx) * n1 + (y + dy)) * n2 + (z - 1)
@@ -580,6 +584,39 @@ def _set_near_bits_of(P: NDArray[np.float64], inv_v: float, lo: NDArray[np.int64
                 bits[i] |= np.uint8(word & 255)
                 if word > 255:
                     bits[i + 1] |= np.uint8(word >> 8)
+
+
+@nb.njit(cache=True)
+def _grid_build(P: NDArray[np.float64], inv_h: float, dense_max: int) -> tuple:
+    """What :class:`CellHash`'s constructor computes, in one compiled call (its numpy steps and
+    the calls of :func:`_cells_of` and :func:`_dense_grid` cost more than the work on ~1,000
+    points; a cold match builds nine grids): (status, origin, dims, cells, order, starts,
+    dense, points). status 0: a cell is not representable or the box too large for the keys
+    (no hash); 1: grid over a dense table; 2: more than ``dense_max`` cells (the caller hashes
+    ``cells``, counted from ``origin``)."""
+    ok, ci, lo, hi = _cells_of(P, inv_h)
+    no_rows = np.zeros(0, np.int64)
+    origin = lo - 1
+    dims = hi - origin + 2
+    if not ok or max(dims[0], dims[1], dims[2]) >= _GRID_LIM:
+        return 0, origin, dims, ci, no_rows, no_rows, np.zeros(0, np.int32), np.zeros((0, 3))
+    if float(dims[0]) * float(dims[1]) * float(dims[2]) <= dense_max:  # counting sort by cell
+        order, starts, dense, points = _dense_grid(ci, origin, dims, P)
+        return 1, origin, dims, ci, order, starts, dense, points
+    return 2, origin, dims, ci, no_rows, no_rows, np.zeros(0, np.int32), np.zeros((0, 3))
+
+
+@nb.njit(cache=True)
+def _near_build(P: NDArray[np.float64], inv_v: float, max_bits: int) -> tuple:
+    """(bits, low corner, dims) of :meth:`CellHash.near_bitmap` in one compiled call: the box of
+    :func:`_near_box`, no bits when it has more than ``max_bits`` voxels, else the bitmap of
+    :func:`_set_near_bits_of`."""
+    lo, dims = _near_box(P, inv_v)
+    if float(dims[0]) * float(dims[1]) * float(dims[2]) > max_bits:
+        return np.zeros(0, np.uint8), lo, dims
+    bits = np.zeros((dims[0] * dims[1] * dims[2] + 7) // 8, np.uint8)
+    _set_near_bits_of(P, inv_v, lo, dims, bits)
+    return bits, lo, dims
 
 
 class CellHash:
@@ -595,21 +632,14 @@ class CellHash:
         self.h = 2.0 * self.radius * (1.0 + _GRID_MARGIN)
         self.inv_h = 1.0 / self.h
         P = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-        # Coordinates that the cell keys or the rounding margin cannot represent: no hash.
-        ok, ci, lo, hi = _cells_of(P, self.inv_h)
-        self.ok = bool(ok)
-        if not self.ok:
-            return
-        self.origin = lo - 1
-        self.dims = hi - self.origin + 2
-        if self.dims.max() >= _GRID_LIM:
-            self.ok = False
-            return
-        d0, d1, d2 = self.dims.tolist()
-        if float(d0) * float(d1) * float(d2) <= _DENSE_MAX:  # one compiled pass: counting sort by cell
-            self.order, self.starts, self.dense, self.points = _dense_grid(ci, self.origin, self.dims, P)
+        # one compiled call: cells, box and (small boxes) the dense grid; coordinates that the
+        # cell keys or the rounding margin cannot represent: no hash
+        status, self.origin, self.dims, ci, self.order, self.starts, self.dense, self.points = _grid_build(
+            P, self.inv_h, _DENSE_MAX)
+        self.ok = status > 0
+        if status == 1:
             self.tk, self.tv = np.zeros(0, np.int64), np.zeros(0, np.int64)
-        else:
+        elif status == 2:
             self._hashed(P, ci - self.origin)
 
     def _hashed(self, P: NDArray[np.float64], ci: NDArray[np.int64]) -> None:
@@ -679,14 +709,8 @@ class CellHash:
         of voxel coordinates below 2^28), so a query outside the bitmap has no neighbour. Built
         on first use; empty (every query searched) when the box has more than ``NEAR_BITS`` voxels."""
         if self._near is None:
-            v = self.radius * (1.0 + 1e-6)
-            lo, dims = _near_box(self.points, 1.0 / v)
-            if float(np.prod(dims.astype(float))) > NEAR_BITS:  # too large: no filter
-                self._near = (np.zeros(0, np.uint8), lo, dims, 1.0 / v)
-                return self._near
-            bits = np.zeros((int(np.prod(dims)) + 7) // 8, np.uint8)
-            _set_near_bits_of(self.points, 1.0 / v, lo, dims, bits)
-            self._near = (bits, lo, dims, 1.0 / v)
+            inv_v = 1.0 / (self.radius * (1.0 + 1e-6))
+            self._near = (*_near_build(self.points, inv_v, NEAR_BITS), inv_v)  # (empty bits: too large)
         return self._near
 
     def _near_bitmap_reference(self) -> tuple:
