@@ -368,6 +368,16 @@ def occupancy_bitmap(points: NDArray[np.float64], voxel: float) -> tuple | None:
     ``occupancy_lookup`` gives for those voxels' :func:`voxel_keys`, built in one compiled
     pass without the sorted keys. None when the box is too large for the bitmap (then the
     keys and the hash table answer)."""
+    ok, origin, bits, dims = _occupancy_build(np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3),
+                                              float(voxel), OCCUPANCY_BITS)
+    if not ok:
+        return None
+    empty = np.zeros(0, np.int64)
+    return origin, (empty, empty, bits, np.full(3, -1, np.int64), dims)
+
+
+def _occupancy_bitmap_reference(points: NDArray[np.float64], voxel: float) -> tuple | None:
+    """numpy specification of :func:`occupancy_bitmap`."""
     base = np.floor(np.asarray(points, dtype=np.float64) / voxel)
     if len(base) == 0 or not np.all(np.isfinite(base)):
         return None
@@ -381,6 +391,47 @@ def occupancy_bitmap(points: NDArray[np.float64], voxel: float) -> tuple | None:
     _set_face_bits(ijk.astype(np.int64), dims, bits)
     empty = np.zeros(0, np.int64)
     return origin, (empty, empty, bits, np.full(3, -1, np.int64), dims)
+
+
+@nb.njit(cache=True)
+def _occupancy_build(P: NDArray[np.float64], voxel: float, max_bits: int) -> tuple:
+    """(ok, origin, bits, dims) of :func:`occupancy_bitmap` in one compiled call (its dozen numpy
+    steps cost more than the work; a cold match builds two): the same floors, origin (the
+    lowest voxel), dims and bits; ok False where the reference returns None."""
+    n = P.shape[0]
+    base = np.empty((n, 3))
+    origin = np.zeros(3)
+    top = np.zeros(3)
+    empty_bits = np.zeros(0, np.uint8)
+    dims = np.zeros(3, np.int64)
+    if n == 0:
+        return False, origin, empty_bits, dims
+    for a in range(n):
+        for j in range(3):
+            b = np.floor(P[a, j] / voxel)
+            if not np.isfinite(b):
+                return False, origin, empty_bits, dims
+            base[a, j] = b
+            if a == 0 or b < origin[j]:
+                origin[j] = b
+    for a in range(n):
+        for j in range(3):
+            d = base[a, j] - origin[j]
+            base[a, j] = d
+            if a == 0 or d > top[j]:
+                top[j] = d
+    for j in range(3):
+        dims[j] = int(top[j]) + 3
+    if (float(dims[0]) * float(dims[1]) * float(dims[2]) > max_bits
+            or max(top[0], top[1], top[2]) >= (1 << (_KEY_BITS - 1)) - 3):
+        return False, origin, empty_bits, dims
+    bits = np.zeros((dims[0] * dims[1] * dims[2] + 7) // 8, np.uint8)
+    ijk = np.empty((n, 3), np.int64)
+    for a in range(n):
+        for j in range(3):
+            ijk[a, j] = int(base[a, j])
+    _set_face_bits(ijk, dims, bits)
+    return True, origin, bits, dims
 
 
 @nb.njit(cache=True)

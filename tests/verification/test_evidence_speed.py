@@ -245,6 +245,27 @@ def test_occupancy_bitmap_equals_the_table_of_the_sorted_keys(seed, n, scale, of
     for got, want in zip(table, ref, strict=True):
         np.testing.assert_array_equal(got, want)
     assert np.count_nonzero(table[2]) > 0
+    want = cell_hash._occupancy_bitmap_reference(P, voxel)  # the compiled build = its numpy one
+    assert want is not None and want[0].tobytes() == origin.tobytes()
+    for got, w in zip(table, want[1], strict=True):
+        assert got.dtype == w.dtype and got.tobytes() == w.tobytes()
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(0, 50), voxel=st.sampled_from([0.1, 0.3, 1e-6]),
+       bad=st.sampled_from([None, np.nan, np.inf, 1e300]))
+def test_occupancy_bitmap_edge_cases_equal_the_numpy_build(seed, n, voxel, bad):
+    """Empty clouds, non-finite or far coordinates, boxes too large: None exactly where the
+    numpy build gives None, the same arrays elsewhere."""
+    P = np.random.default_rng(seed).normal(0, 5, (n, 3))
+    if bad is not None and n:
+        P[n // 2, n % 3] = bad
+    got, want = cell_hash.occupancy_bitmap(P, voxel), cell_hash._occupancy_bitmap_reference(P, voxel)
+    assert (got is None) == (want is None)
+    if got is not None:
+        assert got[0].tobytes() == want[0].tobytes()
+        for g, w in zip(got[1], want[1], strict=True):
+            assert g.tobytes() == w.tobytes()
 
 
 @SETTINGS
