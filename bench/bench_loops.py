@@ -146,6 +146,9 @@ def main() -> None:
     ap.add_argument("--deskew", action="store_true", help="de-skew the simulated drives (not the courtyard)")
     ap.add_argument("--odometry", default="drift", help="--deskew: drift | gt | kiss-icp | PATH")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--union", default=None, metavar="R:F",
+                    help="ours with the descriptor+radius retriever (R m + F x odometry path; not the default: "
+                    "bench/loops_calibration_union.py); the courtyard has no odometry, so descriptor only there")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--merge", type=Path, nargs="+", default=None,
                     help="only merge the results.json of these --out folders (same scans, methods run "
@@ -174,12 +177,17 @@ def main() -> None:
     if args.deskew:  # the simulated drives de-skewed; the courtyard as it is, its results beside them
         groups = [([p for p in seqs if p.name != "balm_courtyard"], True),
                   ([p for p in seqs if p.name == "balm_courtyard"], False)]
+    config = benchmark_config()
+    if args.union:
+        R, F = (float(x) for x in args.union.split(":"))
+        config.retrieval.method = "descriptor+radius"
+        config.retrieval.radius_m, config.retrieval.drift_fraction = R, F
     results = []
     for k, (group, deskew) in enumerate(groups):
         if not group:
             continue
         out = args.out if k == 0 else args.out / "as-recorded"
-        run_sequence_benchmark(group, out, methods=methods, workers=args.workers, config=benchmark_config(),
+        run_sequence_benchmark(group, out, methods=methods, workers=args.workers, config=config,
                                extract_only=args.prepare, deskew=deskew,
                                odometry=args.odometry if deskew else None)
         if not args.prepare:
