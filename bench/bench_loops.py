@@ -147,8 +147,9 @@ def main() -> None:
     ap.add_argument("--odometry", default="drift", help="--deskew: drift | gt | kiss-icp | PATH")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--union", default=None, metavar="R:F",
-                    help="ours with the descriptor+radius retriever (R m + F x odometry path; not the default: "
-                    "bench/loops_calibration_union.py); the courtyard has no odometry, so descriptor only there")
+                    help="ours with the descriptor+radius retriever at R m + F x odometry path (the default is 5:0.02, "
+                    "bench/loops_calibration_union.py), or 'off' for the descriptor alone; the courtyard has no "
+                    "odometry, so descriptor only there")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--merge", type=Path, nargs="+", default=None,
                     help="only merge the results.json of these --out folders (same scans, methods run "
@@ -178,10 +179,12 @@ def main() -> None:
         groups = [([p for p in seqs if p.name != "balm_courtyard"], True),
                   ([p for p in seqs if p.name == "balm_courtyard"], False)]
     config = benchmark_config()
-    if args.union:
+    if args.union == "off":
+        config.retrieval.method = "descriptor"  # the default before session 10's end
+    elif args.union:
         R, F = (float(x) for x in args.union.split(":"))
         config.retrieval.method = "descriptor+radius"
-        config.retrieval.radius_m, config.retrieval.drift_fraction = R, F
+        config.retrieval.union_radius_m, config.retrieval.drift_fraction = R, F
     results = []
     for k, (group, deskew) in enumerate(groups):
         if not group:

@@ -52,10 +52,12 @@ def main() -> None:
     results = []
     for setting in ["descriptor", *args.settings]:
         cfg = benchmark_config()
-        if setting != "descriptor":
+        if setting == "descriptor":
+            cfg.retrieval.method = "descriptor"
+        else:
             R, f = (float(x) for x in setting.split(":"))
             cfg.retrieval.method = "descriptor+radius"
-            cfg.retrieval.radius_m, cfg.retrieval.drift_fraction = R, f
+            cfg.retrieval.union_radius_m, cfg.retrieval.drift_fraction = R, f
         rows = {}
         for p in paths:
             from graffmatch.loops.sequence import prepare_drive

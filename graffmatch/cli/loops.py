@@ -62,14 +62,23 @@ def loops(
     sequence: Annotated[Path, typer.Argument(help="Sequence folder (KITTI layout, simulated drive, ...).")],
     output: Annotated[Path | None, typer.Option("--output", "-o", help="Results folder (rerun to resume).")] = None,
     kind: Annotated[str, typer.Option(help="Dataset kind for open_dataset (folder, kitti, kitti360, nclt).")] = "folder",
-    retriever: Annotated[Retriever, typer.Option(help="Candidate retrieval.")] = Retriever.descriptor,
+    retriever: Annotated[
+        Retriever,
+        typer.Option(help="Candidate retrieval (descriptor+radius: the descriptor alone unless odometry is loaded)."),
+    ] = Retriever.descriptor_radius,
     top_k: Annotated[int | None, typer.Option(min=1, help="Candidates retrieved per query (quick-checked).")] = None,
     max_verified: Annotated[int | None, typer.Option(min=1, help="Verify at most this many per query.")] = None,
     quick_check: Annotated[bool, typer.Option(help="Pre-screen candidates with the BEV quick check.")] = True,
     all_loops: Annotated[bool, typer.Option(help="Verify every candidate (no stop at the first accepted).")] = False,
     exclude_seconds: Annotated[float | None, typer.Option(min=0, help="Skip scans this recent (s).")] = None,
     exclude_frames: Annotated[int | None, typer.Option(min=0, help="Also skip this many recent scans.")] = None,
-    radius: Annotated[float | None, typer.Option(min=0, help="Radius retriever: search radius (m).")] = None,
+    radius: Annotated[
+        float | None, typer.Option(min=0, help="Radius retrievers: search radius (m; radius 10, descriptor+radius 5).")
+    ] = None,
+    radius_drift: Annotated[
+        float | None,
+        typer.Option(min=0, help="descriptor+radius: the radius grows by this fraction of the odometry path (0.02)."),
+    ] = None,
     min_confidence: Annotated[float | None, typer.Option(min=0, max=1, help="Report loops from this confidence.")] = None,
     place_radius: Annotated[
         float | None, typer.Option(min=0, help="Report only loops estimated at most this far apart (m), less --place-margin.")
@@ -98,7 +107,8 @@ def loops(
     ] = False,
     use_odometry: Annotated[
         bool,
-        typer.Option(help="Load --odometry even without --optimize/--deskew: weak point-verified loops are "
+        typer.Option(help="Load --odometry even without --optimize/--deskew: the descriptor+radius retriever then adds "
+                     "the scans near the odometry estimate, and weak point-verified loops are "
                      "then accepted when a neighbouring query's loop agrees through it (sequence consistency)."),
     ] = False,
 ) -> None:
@@ -110,7 +120,9 @@ def loops(
     ds = _open(sequence, kind)
     cfg = LoopDetectorConfig()
     cfg.retrieval.method = retriever.value
-    for field, value in (("top_k", top_k), ("exclude_seconds", exclude_seconds), ("exclude_frames", exclude_frames), ("radius_m", radius)):
+    radius_field = "union_radius_m" if retriever == Retriever.descriptor_radius else "radius_m"
+    for field, value in (("top_k", top_k), ("exclude_seconds", exclude_seconds), ("exclude_frames", exclude_frames),
+                         (radius_field, radius), ("drift_fraction", radius_drift)):
         if value is not None:
             setattr(cfg.retrieval, field, value)
     if min_confidence is not None:
@@ -127,7 +139,7 @@ def loops(
     cfg.verification.stop_when_accepted = not all_loops
     cfg = LoopDetectorConfig.model_validate(cfg.model_dump())
     out_dir = output or run_dir(STATE.runs_dir, "loops")
-    need_odometry = optimize or deskew or use_odometry or retriever in (Retriever.radius, Retriever.descriptor_radius)
+    need_odometry = optimize or deskew or use_odometry or retriever == Retriever.radius
     ds, odo = prepare_drive(ds, odometry if need_odometry else None, deskew,
                             OdometryDriftConfig(yaw_bias_deg_per_100m=drift_yaw, seed=drift_seed))
     with make_progress() as progress:

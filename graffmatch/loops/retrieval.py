@@ -38,7 +38,9 @@ class RetrievalConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     method: RetrieverName = Field(
-        "descriptor", description="descriptor | scan-context | radius | descriptor+radius"
+        "descriptor+radius",
+        description="descriptor | scan-context | radius | descriptor+radius (the default: the descriptor "
+        "alone when no odometry positions are given)",
     )
     top_k: int = Field(
         20, ge=1, le=200,
@@ -51,8 +53,12 @@ class RetrievalConfig(BaseModel):
     )
     exclude_frames: int = Field(0, ge=0, description="also skip this many most recent scans")
     radius_m: float = Field(10.0, gt=0, description="radius retriever: search radius [m]")
+    union_radius_m: float = Field(
+        5.0, gt=0, description="descriptor+radius: scans within this many metres of the odometry estimate "
+        "join the descriptor's top-k (5 m + 2 % chosen on the calibration drives: docs/loops.md, session 10)"
+    )
     drift_fraction: float = Field(
-        0.0, ge=0, description="descriptor+radius: the radius grows by this fraction of the odometry "
+        0.02, ge=0, description="descriptor+radius: the radius grows by this fraction of the odometry "
         "path between query and candidate"
     )
     ring_key_candidates: int = Field(
@@ -182,7 +188,7 @@ class DescriptorRadiusRetriever:
             self._path = np.concatenate([[0.0], np.cumsum(steps)])
         P, path = self._P, self._path
         d = np.linalg.norm(P[:eligible] - P[query], axis=1)
-        r = self.config.radius_m + self.config.drift_fraction * (path[query] - path[:eligible])
+        r = self.config.union_radius_m + self.config.drift_fraction * (path[query] - path[:eligible])
         keep = np.flatnonzero(d <= r)
         keep = keep[~np.isin(keep, idx)]
         keep = keep[np.argsort(d[keep], kind="stable")][: self.config.top_k].astype(np.int64)

@@ -239,3 +239,22 @@ def test_deskewed_scans_have_their_own_cache_keys(drives):
     assert _scan_key(d, 3, cfg) != _scan_key(ds, 3, cfg)
     assert _scan_key(Deskewed(ds), 3, cfg) == _scan_key(d, 3, cfg)
     assert _scan_key(Deskewed(ds, drifted_odometry(ds.poses)), 3, cfg) != _scan_key(d, 3, cfg)
+
+
+def test_no_revisits_no_loops_with_odometry_and_the_default_retriever(drives, tmp_path):
+    """With odometry loaded the default retriever also looks near the odometry estimate, and the
+    sequence-consistency rule is on: still no loop on a drive that never comes back."""
+    import shutil
+
+    from graffmatch.loops.sequence import prepare_drive
+
+    ds, out, _ = drives["straight"]
+    shutil.copytree(out / "landmarks", tmp_path / "landmarks")  # the extraction cache
+    _, odo = prepare_drive(ds, "drift", False)
+    assert odo is not None and _config().retrieval.method == "descriptor+radius"
+    s = run_loops(ds, tmp_path, _config(), workers=1, odometry=odo)
+    assert s["n_loops"] == 0
+    excl = _config().retrieval.exclude_frames
+    # 2 m a scan and 30 excluded: nothing eligible is within 5 m + 2 % of the path, so the
+    # candidates are exactly the descriptor's
+    assert s["n_candidates_retrieved"] == sum(min(20, max(0, q - excl)) for q in range(N_STRAIGHT))

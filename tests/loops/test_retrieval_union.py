@@ -31,10 +31,11 @@ def _drive(positions: bool = True) -> tuple[LandmarkDatabase, np.ndarray]:
 def test_union_adds_the_scans_near_the_odometry_estimate_after_the_descriptor_top_k() -> None:
     db, X = _drive()
     q = 150
-    desc = make_retriever(RetrievalConfig(top_k=5, exclude_seconds=20.0))
+    desc = make_retriever(RetrievalConfig(method="descriptor", top_k=5, exclude_seconds=20.0))
     m = eligible_count(db.timestamps, q, desc.config)
     top, _ = desc.candidates(db, q, m)
-    union = make_retriever(RetrievalConfig(method="descriptor+radius", top_k=5, exclude_seconds=20.0, radius_m=2.5))
+    union = make_retriever(RetrievalConfig(method="descriptor+radius", top_k=5, exclude_seconds=20.0, union_radius_m=2.5,
+                                           drift_fraction=0.0))
     idx, dist = union.candidates(db, q, m)
     assert idx[:5].tolist() == top.tolist()  # the descriptor's ranks come first, unchanged
     extra = idx[5:].tolist()
@@ -44,7 +45,7 @@ def test_union_adds_the_scans_near_the_odometry_estimate_after_the_descriptor_to
     np.testing.assert_allclose(dist[5:], np.linalg.norm(X[extra] - X[q], axis=1), rtol=1e-6)
     # the drift term: 2 % of the ~100 m travelled since scans 48-52 widens 2.5 m to ~4.5 m
     wide = make_retriever(RetrievalConfig(method="descriptor+radius", top_k=20, exclude_seconds=20.0,
-                                          radius_m=2.5, drift_fraction=0.02))
+                                          union_radius_m=2.5, drift_fraction=0.02))
     idx_w, _ = wide.candidates(db, q, m)
     near = set(idx_w.tolist()) - set(wide._desc.candidates(db, q, m)[0].tolist())
     assert set(range(46, 55)) - set(idx_w.tolist()) == set()
@@ -56,7 +57,7 @@ def test_union_without_positions_is_the_descriptor_retriever() -> None:
     cfg = RetrievalConfig(method="descriptor+radius", top_k=5, exclude_seconds=20.0)
     m = eligible_count(db.timestamps, 150, cfg)
     idx, _ = make_retriever(cfg).candidates(db, 150, m)
-    ref, _ = make_retriever(RetrievalConfig(top_k=5, exclude_seconds=20.0)).candidates(db, 150, m)
+    ref, _ = make_retriever(RetrievalConfig(method="descriptor", top_k=5, exclude_seconds=20.0)).candidates(db, 150, m)
     assert idx.tolist() == ref.tolist()
 
 
@@ -66,3 +67,9 @@ def test_union_with_some_positions_missing_names_them() -> None:
     cfg = RetrievalConfig(method="descriptor+radius", top_k=5, exclude_seconds=20.0)
     with pytest.raises(InvalidInputError, match="positions"):
         make_retriever(cfg).candidates(db, 150, eligible_count(db.timestamps, 150, cfg))
+
+
+def test_the_default_is_the_union_chosen_on_the_calibration_drives() -> None:
+    cfg = RetrievalConfig()
+    assert (cfg.method, cfg.union_radius_m, cfg.drift_fraction, cfg.top_k) == ("descriptor+radius", 5.0, 0.02, 20)
+    assert cfg.radius_m == 10.0  # the plain radius retriever keeps its own radius
