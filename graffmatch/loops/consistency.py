@@ -17,15 +17,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graffmatch.errors import InvalidInputError
+from graffmatch.geometry.transforms import invert
 from graffmatch.loops.verify import VerificationConfig, loop_confidence
-
-
-def _inv(T: NDArray) -> NDArray:
-    R, t = T[:3, :3], T[:3, 3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ t
-    return out
 
 
 def loop_pair_residual(
@@ -33,9 +26,9 @@ def loop_pair_residual(
 ) -> tuple[float, float]:
     """(translation m, rotation deg) by which two loops q -> m, q2 -> m2 disagree through the
     odometry poses (world <- scan): odometry q -> q2 against T_m_q^-1 (odometry m -> m2) T_m2_q2."""
-    A = _inv(odometry[q]) @ odometry[q2]
-    B = _inv(T_m_q) @ _inv(odometry[m]) @ odometry[m2] @ T_m2_q2
-    E = _inv(A) @ B
+    A = invert(odometry[q]) @ odometry[q2]
+    B = invert(T_m_q) @ invert(odometry[m]) @ odometry[m2] @ T_m2_q2
+    E = invert(A) @ B
     cos = np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
     return float(np.linalg.norm(E[:3, 3])), float(np.degrees(np.arccos(cos)))
 
