@@ -25,6 +25,8 @@ passes, each pair's transform) and re-matches the misses it studies.
   landmarks as a second evidence below ``min_overlap``: valid also when the overlap is at least
   ``mo2`` and the landmark-level evidence of bare sets (graded share, or landmarks explained)
   reaches ``L`` (grid; feasible: precision >= 99.5 % on every recording, no valid wrong negative).
+  And whether the free-space check saw the answers below ``min_overlap`` at all (the share of
+  points landing in cells of the other scan's image that hold a return).
 
     python bench/verification_misses.py --rows bench/results/verification.json --out /tmp/gm-verify \\
         --json bench/results/verification_misses_session11.json
@@ -446,6 +448,40 @@ def landmark_second(src: dict, cal: list[dict]) -> dict:
     return {"best_feasible": best, "below_min_overlap": below}
 
 
+def known_shares(cl: Clouds, cal: list[dict]) -> dict:
+    """Whether the free-space check saw the answer at all: the share of each scan's points that
+    land in a cell of the other's image holding a return (what the conflict is a share of), for
+    the answers past the rival and conflict checks below ``min_overlap`` and the right positives."""
+    cell = (C0.free_space_az_deg, C0.free_space_el_deg, C0.free_space_neighbours, C0.free_space_scan_neighbours)
+
+    def known(r: dict) -> tuple[float, float]:
+        cs, ct = cl.pair(r)
+        if r.get("T") is None or cs is None or ct is None:
+            return (0.0, 0.0)
+        a, b = cs.range_image(*cell), ct.range_image(*cell)
+        if a is None or b is None:
+            return (0.0, 0.0)
+        T = np.asarray(r["T"])
+        M_st, M_ts = invert(ct.sensor_pose) @ T, invert(cs.sensor_pose) @ invert(T)
+        _, k1 = b.conflicts(cs.points @ M_st[:3, :3].T + M_st[:3, 3], C0.free_space_margin, C0.free_space_margin_rel)
+        _, k2 = a.conflicts(ct.points @ M_ts[:3, :3].T + M_ts[:3, 3], C0.free_space_margin, C0.free_space_margin_rel)
+        return (k1 / len(cs), k2 / len(ct))
+
+    th = (0.0, C0.max_rival_ratio, C0.max_conflict)
+    below, right_min = [], []
+    for r, ok, a in zip(cal, decide(cal, *th), answered(cal, *th), strict=True):
+        if a["correct"] and r["positive"]:
+            right_min.append(min(known(a)))
+        if ok and 0.12 <= a["score"] < C0.min_overlap:
+            below.append({"pair": [r["ds"], r["i"], r["ds2"], r["j"]], "right": a["correct"], "overlap": a["score"],
+                          "known": known(a)})
+    q = np.percentile(right_min, [1, 5, 50]).tolist()
+    print(f"known shares (points in observed cells): right positives' smaller share 1/5/50 %: {np.round(q, 2)}")
+    for x in below:
+        print(f"   {x['pair']} right {x['right']}, overlap {x['overlap']:.3f}, known {np.round(x['known'], 2)}")
+    return {"right_positives_smaller_known_1_5_50": q, "below_min_overlap": below}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--rows", default="bench/results/verification.json", help="bench/verification.py --json output")
@@ -464,6 +500,7 @@ def main() -> None:
     stress = stress_set(src, cl)
     report["evidence_variants"] = evidence_variants(src, cl, cal, stress)
     report["landmarks_second_evidence"] = landmark_second(src, cal)
+    report["free_space_known_shares"] = known_shares(cl, cal)
     print(f"{time.perf_counter() - t0:.0f} s")
     if a.json:
         Path(a.json).write_text(json.dumps(report, indent=1, default=float))
