@@ -17,6 +17,10 @@ a slow hand-held walk) is benchmarked as it is, in the same invocation:
 
     PYTHONPATH=$PWD python bench/bench_loops.py --realism realistic --scans 400 --deskew \
         --data /tmp/loops7-data --out /tmp/loops7-out --json bench/results/loops_session7.json
+
+Our own odometry (session 11): ``--odometry kiss-icp`` runs KISS-ICP once per drive on its raw
+scans (kept in ``<out>/<drive>/kiss_icp_kitti.txt``); the de-skew, our retrieval's positions and
+the sequence-consistency rule all read it, and every row records its evo ATE (``odometry``).
 """
 
 from __future__ import annotations
@@ -140,6 +144,9 @@ def main() -> None:
     ap.add_argument("--timed", type=Path, nargs="*", default=None,
                     help="with --merge: bench_loops_speed.py JSONs whose quick-20 means replace our "
                     "rows' ms/query (the runs here are niced and loaded)")
+    ap.add_argument("--drives", nargs="+", default=None, metavar="SUITE:SEED",
+                    help="simulate and run these drives instead of the six reported ones (e.g. sim-openroad:4, "
+                    "a drive without revisits)")
     ap.add_argument("--only", nargs="+", default=None,
                     help="run only these sequences (folder names), in this order")
     ap.add_argument("--realism", default="ideal", help="simulator realism preset of the drives (ideal, realistic)")
@@ -166,7 +173,10 @@ def main() -> None:
         run_sequence_benchmark,
     )
 
-    seqs = simulate(args.data, args.scans, args.realism)
+    drives = None
+    if args.drives:
+        drives = [(d.rsplit(":", 1)[0], int(d.rsplit(":", 1)[1])) for d in args.drives]
+    seqs = simulate(args.data, args.scans, args.realism, drives)
     if not args.no_courtyard and COURTYARD.is_dir():
         seqs.append(COURTYARD.resolve())
     if args.only:

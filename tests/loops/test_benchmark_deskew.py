@@ -66,3 +66,43 @@ def test_benchmark_loops_deskew_uses_the_loops_pipeline(raw_drive, tmp_path):
         b = load_landmarks(loops_out / "landmarks" / f"{i:06d}.npz")
         assert len(a) == len(b) > 0
         np.testing.assert_allclose(a.anchors, b.anchors, atol=1e-6)
+
+
+def test_benchmark_kiss_icp_odometry_is_computed_once_per_drive_and_scored(raw_drive, tmp_path, monkeypatch):
+    """``--odometry kiss-icp``: one KISS-ICP run per drive, kept as a KITTI file that the
+    extract-only and the scoring run both read (same poses, same landmark cache keys); redone
+    when a scan file changes. Every row records the odometry's ATE against the ground truth."""
+    import os
+
+    import graffmatch.loops.posegraph as pg
+    from graffmatch.evaluation.sequence_benchmark import benchmark_odometry, run_sequence_benchmark
+    from graffmatch.geometry.pose_files import read_kitti
+
+    calls = []
+    shifted = np.asarray(raw_drive.poses, float).copy()
+    shifted[:, 0, 3] += 0.1 * np.arange(N_SCANS)  # an odometry 0.1 m a scan off, so the ATE is not 0
+    shifted[:, 1, 3] += 0.05 * np.arange(N_SCANS) ** 2  # bent: evo aligns a curve, not a straight line
+
+    def fake_kiss(ds):
+        calls.append(ds.name)
+        return shifted
+
+    monkeypatch.setattr(pg, "kiss_icp_odometry", fake_kiss)
+    out = tmp_path / "bench"
+    path = benchmark_odometry(raw_drive, "kiss-icp", out)
+    assert path == str(out / raw_drive.name / "kiss_icp_kitti.txt") and calls == [raw_drive.name]
+    np.testing.assert_allclose(read_kitti(path), shifted, atol=1e-6)
+    assert benchmark_odometry(raw_drive, "kiss-icp", out) == path and len(calls) == 1  # cached
+    assert benchmark_odometry(raw_drive, "drift", out) == "drift" and len(calls) == 1
+    st = os.stat(raw_drive.scan_path(2))
+    os.utime(raw_drive.scan_path(2), ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    benchmark_odometry(raw_drive, "kiss-icp", out)
+    assert len(calls) == 2  # a scan changed: KISS-ICP again
+    run_sequence_benchmark([raw_drive.root], out, methods=["ours"], workers=1, deskew=True, odometry="kiss-icp")
+    assert len(calls) == 2
+    row = json.loads((out / "results.json").read_text())[0]
+    assert row["odometry"]["source"] == "kiss-icp" and row["odometry"]["file"] == path
+    assert 0.05 < row["odometry"]["ate_rmse_m"] < 0.5
+    # the de-skew used the file's poses: the landmark cache keys are those of Deskewed(raw, file)
+    meta = json.loads((out / f"{raw_drive.name}+deskew" / "ours" / "queries.meta.json").read_text())
+    assert meta["fingerprint"]
