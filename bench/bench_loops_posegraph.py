@@ -17,8 +17,10 @@ graph (a heading-rate bias estimated for the drive). ``oracle`` rows put a groun
 edge at every query that has an earlier scan within 5 m (outside the 10 s window): what the
 graph gives with perfect loops, to tell the loops' quality from what the graph can observe.
 ATE = evo's APE RMSE (translation, SE(3)-aligned); RPE over 10 frames. With ``--kiss-icp DIR``
-the KISS-ICP odometry that ``bench_loops.py --methods mapclosures`` wrote
-(``DIR/<drive>/mapclosures/kiss_icp_kitti.txt``) is used as well (drift ``kiss-icp``).
+the KISS-ICP odometry that ``bench_loops.py --odometry kiss-icp`` (``DIR/<drive>/kiss_icp_kitti.txt``)
+or ``--methods mapclosures`` (``DIR/<drive>/mapclosures/kiss_icp_kitti.txt``) wrote is used as
+well (drift ``kiss-icp``; ``--drifts`` with no value: only it). ``--suffix +deskew`` reads the
+loops of a ``bench_loops.py --deskew`` run (``<drive>+deskew/ours/loops.csv``).
 ``--synthetic N`` only times the graphs on a synthetic drive of about N poses (a 40 m
 square driven again and again, a loop edge every 4th scan of every lap after the first): the
 plain graph, the default graph (bias solver ``projection``) and, up to ``--joint-max`` poses,
@@ -113,8 +115,12 @@ def main() -> None:
     ap.add_argument("--joint-max", type=int, default=0, help="--synthetic: also time the joint graph up to this size")
     ap.add_argument("--drives", nargs="+", default=DRIVES)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--drifts", nargs="+", default=list(DRIFTS), choices=list(DRIFTS))
-    ap.add_argument("--kiss-icp", type=Path, default=None, help="bench_loops.py --methods mapclosures --out folder")
+    ap.add_argument("--drifts", nargs="*", default=list(DRIFTS), choices=list(DRIFTS))
+    ap.add_argument("--kiss-icp", type=Path, default=None,
+                    help="bench_loops.py --out folder with KISS-ICP odometry: <drive>/kiss_icp_kitti.txt "
+                    "(--odometry kiss-icp) or <drive>/mapclosures/kiss_icp_kitti.txt (--methods mapclosures)")
+    ap.add_argument("--suffix", default="",
+                    help="the drives' folder suffix in --runs, e.g. '+deskew' for bench_loops.py --deskew runs")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--plots", type=Path, default=None, help="trajectory_<drive>.png (default drift, seed 0)")
     args = ap.parse_args()
@@ -144,9 +150,13 @@ def main() -> None:
     for name in args.drives:
         ds = open_dataset("folder", args.data / name)
         gt, ts = np.asarray(ds.poses, float), np.asarray(ds.timestamps, float)
-        loops = read_loops_csv(args.runs / name / "ours" / "loops.csv")
+        loops = read_loops_csv(args.runs / f"{name}{args.suffix}" / "ours" / "loops.csv")
         sources = {"ours": loop_edges(loops), "oracle": oracle_edges(gt, ts)}
-        kiss = None if args.kiss_icp is None else args.kiss_icp / name / "mapclosures" / "kiss_icp_kitti.txt"
+        kiss = None
+        if args.kiss_icp is not None:
+            kiss = args.kiss_icp / name / "kiss_icp_kitti.txt"
+            if not kiss.is_file():
+                kiss = args.kiss_icp / f"{name}{args.suffix}" / "mapclosures" / "kiss_icp_kitti.txt"
         runs = [(d, s) for d in args.drifts for s in args.seeds]
         if kiss is not None and kiss.is_file():
             runs.append(("kiss-icp", args.seeds[0]))
@@ -176,14 +186,17 @@ def main() -> None:
                           f"RPE {row['rpe_before_m']:.3f} -> {row['rpe_after_m']:.3f} m"
                           + (f" bias {row['heading_bias_deg_per_100m']:+.2f} deg/100m" if bias else ""),
                           flush=True)
-                    if (args.plots and src == "ours" and bias and drift == "default"
+                    if (args.plots and src == "ours" and bias and drift in ("default", "kiss-icp")
                             and seed == args.seeds[0]):
                         args.plots.mkdir(parents=True, exist_ok=True)
-                        plot_trajectories(args.plots / f"loops_trajectory_{name}.png", gt, odo, opt, loops)
+                        tag = "" if drift == "default" else "_kiss_icp"
+                        plot_trajectories(args.plots / f"loops_trajectory_{name}{tag}.png", gt, odo, opt, loops)
     ours = [r for r in rows if r["loops"] == "ours"]
     print("\nsummary (ours' loops): ATE after / before, mean and max over seeds")
-    for drift in args.drifts:
+    for drift in [*args.drifts, *(["kiss-icp"] if any(r["drift"] == "kiss-icp" for r in ours) else [])]:
         for name in args.drives:
+            if not any(x["drive"] == name and x["drift"] == drift for x in ours):
+                continue
             cells = []
             for graph in ("plain", "heading-bias"):
                 r = [x["ratio"] for x in ours if x["drive"] == name and x["drift"] == drift and x["graph"] == graph]
