@@ -10,7 +10,7 @@ passed but not verified (budget, early stop); the verified matcher's verdict inv
 or wrong); valid but too few agreeing landmarks; valid but outside the place radius less the
 margin (estimated distance); valid on points with enough agreeing landmarks for the sequence-
 consistency rule but no neighbouring loop agreeing (the records are read through
-``apply_sequence_consistency`` with the drive's drifting odometry, as the benchmark scores them).
+``apply_sequence_consistency`` with the run's odometry, ``--odometry``, as the benchmark scores them).
 Also the reported loops' ground-truth distance and pose errors.
 ``--messages DRIVE`` re-matches that drive's invalid partners and counts the matcher's messages.
 Untimed; reads the run's records and landmark tables (de-skewed drives as the benchmark made them).
@@ -33,12 +33,16 @@ def main() -> None:
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--messages", nargs="*", default=[])
+    ap.add_argument("--odometry", default="drift",
+                    help="the run's odometry (bench_loops.py --odometry): drift | gt | kiss-icp (the run's cached "
+                    "<out>/<drive>/kiss_icp_kitti.txt) | PATH")
     args = ap.parse_args()
 
     from graffmatch.datasets.registry import open_dataset
     from graffmatch.evaluation.sequence_benchmark import (
         Prediction,
         benchmark_config,
+        benchmark_odometry,
         pose_errors,
         positives,
     )
@@ -53,10 +57,11 @@ def main() -> None:
     if COURTYARD.is_dir():
         drives.append(("balm_courtyard", COURTYARD.resolve(), False))
     for name, path, deskew in drives:
-        ds, odo = prepare_drive(open_dataset("folder", path), "drift" if deskew else None, deskew)
-        run = args.out / ds.name / "ours" if deskew else args.out / "as-recorded" / ds.name / "ours"
+        raw = open_dataset("folder", path)
+        run = args.out / f"{raw.name}+deskew" / "ours" if deskew else args.out / "as-recorded" / raw.name / "ours"
         if not (run / "summary.json").is_file():
             continue
+        ds, odo = prepare_drive(raw, benchmark_odometry(raw, args.odometry, args.out) if deskew else None, deskew)
         recs = apply_sequence_consistency(read_queries(run), odo, v)
         n_cons = sum("consistent_with" in c and c["confidence"] >= v.min_confidence
                      for r in recs.values() for c in r["candidates"])
