@@ -229,3 +229,57 @@ def test_compiled_affine_layout_equals_the_numpy_definition():
         if ref[0] is not None:
             assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
     assert outcomes == {True, False}
+
+
+@pytest.mark.parametrize("n_j", [20, 90])
+def test_row_windows_equal_searchsorted(n_j):
+    """_row_windows' ends (counted on runs <= _COUNT_MAX_RUN, merged on longer ones) equal
+    np.searchsorted's on every target run, ties included (distances on a 0.05 grid)."""
+    import graffmatch.association.consistency_graph as cg
+
+    rng = np.random.default_rng(n_j)
+    n_i, eps = 20, 0.2
+
+    def dist(n):
+        D = np.round(rng.uniform(0, 5, (n, n)) / 0.05) * 0.05
+        D = np.triu(D, 1)
+        return D + D.T
+
+    Di, Dj = dist(n_i), dist(n_j)
+    gi, gj = rng.integers(0, 2, n_i), (rng.random(n_j) < 0.15).astype(np.int64)  # runs of ~0.85 n_j
+    assert (max(np.bincount(gj)) > cg._COUNT_MAX_RUN) == (n_j > 64)
+    vals, _, start = cg._row_pair_tables(Dj, gj, 2)
+    src_vals, src_a2s, src_start = cg._row_pair_tables(Di, gi, 2)
+    win0, win1 = np.zeros(n_i, dtype=np.int64), np.zeros(n_i, dtype=np.int64)
+    for a in range(n_i):
+        for b in range(n_j):
+            cg._row_windows(src_vals, src_a2s, src_start, vals, start, a, b, 2, eps, win0, win1)
+            for a2 in range(n_i):
+                if a2 == a:
+                    continue
+                lo, hi = start[b, gi[a2]], start[b, gi[a2] + 1]
+                run = vals[lo:hi]
+                assert win0[a2] == lo + np.searchsorted(run, Di[a, a2] - eps, "right")
+                assert win1[a2] == lo + np.searchsorted(run, Di[a, a2] + eps, "left")
+
+
+def test_weights_and_degrees_equal_their_definition_bit_for_bit():
+    """Every stored weight is float32(_exp_nonpositive(-(D_i[a, a2] - D_j[b, b2])^2 / (2 sigma^2)))
+    and every weighted degree the sequential float64 sum of its row's stored weights, bit for bit
+    (whatever the build's loop structure)."""
+    from graffmatch.association.consistency_graph import _exp_nonpositive, _squarings
+
+    sc = make_scene_pair(12, 24, seed=3)
+    Di, Dj = pairwise_distances(sc.source), pairwise_distances(sc.target)
+    g = build_consistency_graph(Di, Dj, types_i=sc.source.types, types_j=sc.target.types)
+    rows = np.repeat(np.arange(g.m), np.diff(g.indptr))
+    A = g.associations
+    c = Di[A[rows, 0], A[g.indices, 0]] - Dj[A[rows, 1], A[g.indices, 1]]
+    inv = 1.0 / (2.0 * 0.05 * 0.05)
+    x = -c * c * inv
+    w = np.empty_like(x)
+    _exp_nonpositive(x, w, x.size, _squarings(0.2, inv))
+    assert g.n_edges > 1000 and np.array_equal(g.data, w.astype(np.float32))
+    seq = np.array([np.cumsum(g.data[g.indptr[u]:g.indptr[u + 1]].astype(np.float64))[-1]
+                    if g.indptr[u + 1] > g.indptr[u] else 0.0 for u in range(g.m)])
+    assert np.array_equal(g.weighted_degrees, seq)
