@@ -380,16 +380,21 @@ def plot_pr(results: list[dict], out_dir: Path) -> None:
 def run_mapclosures(dataset, retrieval: RetrievalConfig, poses: Array | None = None, map_range_m: float = 100.0,
                     progress: Callable | None = None, name: str = "MapClosures",
                     invert_closure: bool = True, place_gate_m: float = 5.0,
-                    odometry_file: Path | None = None) -> MethodRun:
+                    odometry_file: Path | None = None, max_range_m: float = 100.0) -> MethodRun:
     """MapClosures (Gupta et al. 2024), the real package, driven like its own pipeline.
 
-    Scans are integrated into local maps (0.5 m voxels, cut every ``map_range_m`` of travel)
-    with ``poses``: KISS-ICP odometry when None (its defaults, as ``map_closures_pipeline``
-    does) or the given (ground-truth) poses. Every closure between two local maps becomes a
-    prediction for each scan of the later map that the closure places within ``place_gate_m``
-    of a scan of the earlier map (the nearest one is the match; the same place gate as ours);
-    confidence = the closure's inlier count. ``odometry_file``: where the KISS-ICP poses are
-    written (KITTI format, for the pose graph and plots).
+    Scans are integrated into local maps (0.5 m voxels) with ``poses``: KISS-ICP odometry when
+    None (its defaults, as ``map_closures_pipeline`` does) or the given (ground-truth) poses. As
+    in the pipeline (KISS-ICP's ``max_range`` = ``max_range_m``, 100 m): scans are cropped at
+    ``max_range_m`` (KISS-ICP's preprocessor), a local map is closed when the scan is more than
+    ``map_range_m`` from the map's origin (the pipeline: = max_range; ``mapclosures-gt``: 50 m,
+    the issue's setting, everything else left at 100 m) and the next map starts with the points
+    within ``max_range_m`` of that scan. The package compares a map only with maps at least 4
+    ids older (its C++ skips the 3 most recent), so a drive needs 5 local maps for a first
+    closure. Every closure becomes a prediction for each scan of the later map that the closure
+    places within ``place_gate_m`` of a scan of the earlier map (the nearest one is the match;
+    the same place gate as ours); confidence = the closure's inlier count. ``odometry_file``:
+    where the KISS-ICP poses are written (KITTI format, for the pose graph and plots).
     """
     from map_closures.config import MapClosuresConfig
     from map_closures.map_closures import MapClosures
@@ -411,18 +416,21 @@ def run_mapclosures(dataset, retrieval: RetrievalConfig, poses: Array | None = N
         P = np.stack([invert(P[0]) @ T for T in P])
     else:
         P = np.stack([invert(poses[0]) @ T for T in poses])
-    vmap = VoxelMap(voxel_size=mc_cfg.density_map_resolution, max_distance=100.0)
+    vmap = VoxelMap(voxel_size=mc_cfg.density_map_resolution, max_distance=max_range_m)
     map_pose = P[0]
     map_of_scan = np.zeros(n, np.int64)
     map_poses: list[Array] = []
     closures = []
+    n_candidates = 0
     map_idx = 0
     for i in range(n):
         T_map_scan = invert(map_pose) @ P[i]
-        vmap.integrate_frame(np.asarray(dataset[i].points[:, :3], np.float64), T_map_scan)
+        pts = np.asarray(dataset[i].points[:, :3], np.float64)
+        vmap.integrate_frame(pts[np.linalg.norm(pts, axis=1) <= max_range_m], T_map_scan)
         map_of_scan[i] = map_idx
         if np.linalg.norm(T_map_scan[:3, 3]) > map_range_m or i == n - 1:
             for c in mc.get_closures(map_idx, vmap.point_cloud()):
+                n_candidates += 1
                 if c.number_of_inliers > mc_cfg.inliers_threshold:
                     closures.append((int(c.source_id), int(c.target_id), np.asarray(c.pose, float), int(c.number_of_inliers)))
             map_poses.append(map_pose.copy())
@@ -463,10 +471,13 @@ def run_mapclosures(dataset, retrieval: RetrievalConfig, poses: Array | None = N
             pred = Prediction(int(q), int(ce[k]), float(inl), invert(Pe[k]) @ T_e_q)
             if int(q) not in best or best[int(q)].confidence < pred.confidence:
                 best[int(q)] = pred
+    pairs = max(map_idx - 3, 0) * max(map_idx - 4, 0) // 2  # (ref, query) with ref <= query - 4
     return MethodRun(name, list(best.values()), total / max(n, 1), None,
                      note=f"{map_idx} local maps of {map_range_m:g} m, "
                      f"{'KISS-ICP odometry (defaults)' if poses is None else 'ground-truth poses'}, "
-                     f"{len(closures)} map closures; time includes map building")
+                     f"{len(closures)} map closures (of {n_candidates} candidates, > "
+                     f"{mc_cfg.inliers_threshold} inliers; {pairs} map pairs the package compares, "
+                     f"a map with maps >= 4 older); time includes map building")
 
 
 def run_mapclosures_gt(dataset, retrieval: RetrievalConfig, progress: Callable | None = None) -> MethodRun:
