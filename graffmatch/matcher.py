@@ -105,6 +105,9 @@ class MatchResult:
     e.g. "ambiguous: a 178 deg / 0.4 m alternative ... scores 0.93 of the best", and
     ``T_target_source`` is the best effort, or None when no estimate exists. Never a silent
     identity. ``confidence`` is the calibrated probability that the transform is right.
+    ``overlap`` is the score of ``T_target_source`` itself; when the final landmark
+    re-registration replaced the verified transform, the score the decision (``margin``,
+    ``confidence``, ``runner_up``) was made on is ``info["verified_overlap"]``.
     """
 
     T_target_source: NDArray[np.float64] | None
@@ -293,7 +296,7 @@ def _verified_once(source, target, graph, W, sol, cfg: GraffMatchConfig, vcfg, v
                   weights=np.ones(best.n_associations))
     common["info"].update(origin=best.origin, rival_ratio=verdict.rival_ratio,
                           score_parts=best.score_parts, clipper_selected=len(sol.selected))
-    for key in ("free_space_conflict", "free_space_image", "search", "wide_differs"):
+    for key in ("free_space_conflict", "free_space_image", "search", "wide_differs", "verified_overlap"):
         if key in best.info:
             common["info"][key] = best.info[key]
     if "slide_ratio" in best.info:

@@ -202,12 +202,18 @@ def _trimmed(hyps: list[Hypothesis], source: LandmarkSet, target: LandmarkSet, a
 
 def _refine(best: Hypothesis, source: LandmarkSet, target: LandmarkSet, associations: NDArray[np.int64],
             kappa_max: float, gate: tuple[float, float], min_associations: int,
-            ev: Evidence, cfg: VerificationConfig) -> None:
+            ev: Evidence, cfg: VerificationConfig, min_score: float) -> None:
     """Re-associate under the winner's transform (all putative associations within the residual
     gate, one-to-one) and re-register from the landmarks: more correspondences, usually a more
-    accurate rotation (plane normals) than the point alignment. With evidence points the
-    transform that explains more of them is kept; without, the re-registration is kept when
-    well-conditioned and close to the verified transform."""
+    accurate rotation (plane normals) than the point alignment. The re-registration is kept when
+    well-conditioned, close to the verified transform and scored (on the points, else on the
+    landmarks: the decision's own score) within ``refine_tolerance`` of it, but never when that
+    drops it below ``min_score`` where the verified transform was above.
+
+    A kept re-registration's score becomes ``best.score`` (the verified one goes to
+    ``info["verified_overlap"]``), so the reported overlap is that of the returned transform;
+    the decision's confidence, margin and runner-up stay computed on the verified score, which
+    they are calibrated on."""
     A = reassociate(source, target, associations, best.T_target_source, gate[1], gate[0])
     if len(A) < max(min_associations, best.n_associations):
         return
@@ -223,12 +229,30 @@ def _refine(best: Hypothesis, source: LandmarkSet, target: LandmarkSet, associat
         return
     best.info["clique_associations"] = best.n_associations
     best.associations = A
+    counts: list = []
     if ev.has_points:
         parts = point_overlap(ev.source, ev.target, T_new, cfg.inlier_m)  # type: ignore[arg-type]
-        if 0.5 * (parts[0] + parts[1]) < best.score - cfg.refine_tolerance:
-            return  # the point-aligned transform explains the evidence clearly better
+    else:
+        parts = tuple(landmark_overlap(source, target, T_new, cfg.landmark_deg, cfg.landmark_m, counts).tolist())
+    score = 0.5 * (parts[0] + parts[1])
+    if score < best.score - cfg.refine_tolerance:
+        return  # the verified transform explains the evidence clearly better
+    if score < min_score <= best.score:
+        return  # the re-registration would return a pose that explains less than the decision requires
+    best.info["verified_overlap"] = best.score
     best.T_target_source = T_new
     best.kappa = float(b.kappa[0])
+    best.score_parts = (float(parts[0]), float(parts[1]))
+    best.score = float(score)
+    if counts:
+        best.info["verified_landmarks_explained"] = best.info.get("landmarks_explained", 0)
+        best.info["landmarks_explained"] = int(counts[0][0])
+
+
+def _verified_score(best: Hypothesis) -> float:
+    """The winner's score as the decision saw it (before :func:`_refine`): what confidence and
+    the slide ratio are calibrated on."""
+    return float(best.info.get("verified_overlap", best.score))
 
 
 def _local_search(lead: Hypothesis, ev: Evidence, cfg: VerificationConfig) -> None:
@@ -324,7 +348,7 @@ def _check_free_space(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -
     whole = img_s.whole_scan and img_t.whole_scan
     best.info["free_space_image"] = "whole scans" if whole else "support points"
     if not best.degenerate:
-        verdict.confidence = confidence_of(best.score, verdict.rival_ratio, cfg, conflict)
+        verdict.confidence = confidence_of(_verified_score(best), verdict.rival_ratio, cfg, conflict)
     limit = cfg.max_conflict if whole else min(cfg.max_conflict, cfg.max_conflict_support_points)
     if conflict > limit:
         which, other = ("source", "target") if c_st >= c_ts else ("target", "source")
@@ -338,7 +362,7 @@ def _check_free_space(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -
 def _check_slide(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -> None:
     """Invalid when the evidence does not pin the winner's translation: aligned from starts
     ``slide_m`` away in 16 horizontal directions, the points settle at least ``rival_m`` away
-    with more than ``max_slide_ratio`` of the winner's score. Poles alone leave streets and
+    with more than ``max_slide_ratio`` of the winner's verified score. Poles alone leave streets and
     tree-lined roads where a slide of a metre or two (or a different road) explains the points
     about as well (lines only: sim-downtown near misses 1-2 m off, sim-openroad aliases,
     bench/verification.py)."""
@@ -351,9 +375,10 @@ def _check_slide(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -> Non
     aligned = np.stack([align_on_evidence(ev.source, ev.target, T) for T in starts])  # type: ignore[arg-type]
     far = np.linalg.norm(aligned[:, :3, 3] - T0[:3, 3], axis=1) >= cfg.rival_m
     ratio = 0.0
-    if far.any() and best.score > 0:
+    verified = _verified_score(best)
+    if far.any() and verified > 0:
         parts = point_overlaps(ev.source, ev.target, np.ascontiguousarray(aligned[far]), cfg.inlier_m)  # type: ignore[arg-type]
-        ratio = float(parts.mean(axis=1).max() / best.score)
+        ratio = float(parts.mean(axis=1).max() / verified)
     best.info["slide_ratio"] = ratio
     if ratio > cfg.max_slide_ratio:  # type: ignore[operator]
         verdict.valid = False
@@ -512,7 +537,7 @@ def verify_graph(
     tm["evidence"] = time.perf_counter() - t5
     if verdict.best is not None and gate is not None and not verdict.best.degenerate:
         t6 = time.perf_counter()
-        _refine(verdict.best, source, target, associations, kappa_max, gate, min_associations, ev, cfg)
+        _refine(verdict.best, source, target, associations, kappa_max, gate, min_associations, ev, cfg, min_score)
         tm["registration"] += time.perf_counter() - t6
     if not ev.has_points and verdict.best is not None:
         _check_translation(verdict, source, target, associations, cfg)
