@@ -117,3 +117,49 @@ def test_end_to_end_match_with_extra_motion(kitti, other: int) -> None:
     assert res.valid and res.T_target_source is not None
     rot, trans = transform_errors(res.T_target_source, invert(P[0]) @ P[other] @ invert(X))
     assert rot < 3.0 and trans < 1.5
+
+
+def _returned_overlap(res, source, target, vcfg) -> float:
+    """The point overlap of the transform the matcher returned, on the matcher's own evidence."""
+    from graffmatch.verification.evidence import point_overlap
+    from graffmatch.verification.verify import evidence_for
+
+    ev = evidence_for(source, target, vcfg)
+    return float(np.mean(point_overlap(ev.source, ev.target, res.T_target_source, vcfg.inlier_m)))
+
+
+def test_reported_overlap_is_the_returned_transforms(kitti) -> None:
+    """``overlap`` is the overlap of ``T_target_source`` even when the final landmark
+    re-registration replaced the verified transform (on 3 <- 0 and 0 <- 3 it does: the verified
+    transform explains 0.716 / 0.718, the returned one 0.704 / 0.701), and a valid result's
+    returned transform explains at least ``min_overlap``."""
+    _, lss = kitti
+    m = GraffMatcher()
+    vcfg = m.config.verification
+    swapped = 0
+    for a, b in ((3, 0), (0, 3), (5, 3), (3, 5)):
+        res = m.match(lss[a], lss[b])
+        assert res.valid, res.message
+        assert res.overlap == pytest.approx(_returned_overlap(res, lss[a], lss[b], vcfg), abs=1e-9)
+        assert res.overlap >= vcfg.min_overlap
+        if "verified_overlap" in res.info:
+            swapped += 1
+            assert abs(res.info["verified_overlap"] - res.overlap) <= vcfg.refine_tolerance
+    assert swapped >= 2
+
+
+def test_re_registration_never_drops_the_returned_overlap_below_min_overlap(kitti) -> None:
+    """With ``min_overlap`` between the re-registration's overlap (0.704) and the verified
+    transform's (0.716) on 3 <- 0, the verified transform is returned, with its own overlap."""
+    _, lss = kitti
+    default = GraffMatcher().match(lss[3], lss[0])
+    verified = default.info["verified_overlap"]
+    assert default.overlap < verified - 0.005
+    base = GraffMatcher().config
+    vcfg = base.verification.model_copy(update={"min_overlap": 0.5 * (default.overlap + verified)})
+    cfg = base.model_copy(update={"verification": vcfg})
+    res = GraffMatcher(cfg).match(lss[3], lss[0])
+    assert res.valid, res.message
+    assert "verified_overlap" not in res.info and res.overlap == pytest.approx(verified, abs=1e-12)
+    assert res.overlap == pytest.approx(_returned_overlap(res, lss[3], lss[0], cfg.verification), abs=1e-9)
+    assert not np.array_equal(res.T_target_source, default.T_target_source)
