@@ -194,7 +194,10 @@ def run_pairs(src: dict, pairs: list[dict], cfg: GraffMatchConfig) -> list[dict]
             rows.append(row)
             continue
         row["t"] = time.perf_counter() - t0
-        row["score"] = float(r.overlap)
+        # what the decision compares with min_overlap: the verified transform's overlap (the
+        # returned one differs when the landmark re-registration replaced it, ``overlap``)
+        row["score"] = float(r.info.get("verified_overlap", r.overlap))
+        row["overlap"] = float(r.overlap)
         row["ratio"] = float(r.info.get("rival_ratio", 1.0)) if r.runner_up is not None else 0.0
         row["structural"] = bool(r.T_target_source is not None and r.valid)
         row["message"] = r.message
