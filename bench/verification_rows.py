@@ -65,6 +65,7 @@ def compare(a: list[dict], b: list[dict]) -> int:
     keys = ("valid", "correct", "overlap", "ratio", "conflict", "confidence", "message", "n_hyp")
     n_T = n_other = n_dec = 0
     max_dT = 0.0
+    pose = {"all": (0.0, 0.0), "valid": (0.0, 0.0)}  # largest rotation [deg] / translation [m] change
     for ra, rb in zip(a, b, strict=True):
         assert (ra["ds"], ra["i"], ra["ds2"], ra["j"]) == (rb["ds"], rb["i"], rb["ds2"], rb["j"])
         Ta, Tb = ra.get("T"), rb.get("T")
@@ -76,12 +77,19 @@ def compare(a: list[dict], b: list[dict]) -> int:
         n_other += bool(diff)
         if ra.get("valid") != rb.get("valid") or ra.get("correct") != rb.get("correct"):
             n_dec += 1
+        moved = ""
+        if Ta is not None and Tb is not None and dT != 0.0:
+            rot, tr = transform_errors(np.array(Tb), np.array(Ta))
+            moved = f" ({rot:.3g} deg / {tr:.3g} m)"
+            for k in ("all", "valid") if ra.get("valid") or rb.get("valid") else ("all",):
+                pose[k] = (max(pose[k][0], rot), max(pose[k][1], tr))
         if diff or dT != 0.0:
-            print(f"{ra['ds']}:{ra['i']} <- {ra['ds2']}:{ra['j']}: max |dT| {dT:.3g}; "
+            print(f"{ra['ds']}:{ra['i']} <- {ra['ds2']}:{ra['j']}: max |dT| {dT:.3g}{moved}; "
                   + ", ".join(f"{k} {ra.get(k)!r} -> {rb.get(k)!r}" for k in diff))
     n_valid = sum(bool(r.get("valid")) for r in a)
     print(f"{len(a)} pairs ({n_valid} valid): transforms differ on {n_T} (max |dT| {max_dT:.3g}), other fields on "
-          f"{n_other}, decisions (valid / correct) on {n_dec}")
+          f"{n_other}, decisions (valid / correct) on {n_dec}; largest pose change {pose['all'][0]:.3g} deg / "
+          f"{pose['all'][1]:.3g} m, on valid rows {pose['valid'][0]:.3g} deg / {pose['valid'][1]:.3g} m")
     return n_dec
 
 
