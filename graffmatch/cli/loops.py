@@ -171,7 +171,7 @@ def loops(
 def benchmark_loops(
     sequences: Annotated[list[Path], typer.Argument(help="Sequence folders with ground-truth poses.")],
     output: Annotated[Path | None, typer.Option("--output", "-o", help="Results folder.")] = None,
-    methods: Annotated[list[str] | None, typer.Option("--method", "-m", help="ours | scan-context-icp | mapclosures | mapclosures-gt")] = None,
+    methods: Annotated[list[str] | None, typer.Option("--method", "-m", help="ours | scan-context-icp | mapclosures | mapclosures-gt (| mapclosures-gt:R, R m maps)")] = None,
     workers: Annotated[int | None, typer.Option(min=1, help="Local worker processes.")] = None,
     deskew: Annotated[
         bool, typer.Option(help="De-skew raw scans with the odometry's motion first, for every method (as loops --deskew).")

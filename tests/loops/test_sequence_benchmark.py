@@ -123,3 +123,14 @@ def test_run_mapclosures_ground_truth_poses_on_a_two_lap_drive():
     assert res["place_5m"]["recall_at_100_precision"] == pytest.approx(len(run.predictions) / n_pos)
     assert res["e2e_5m"]["recall_at_100_precision"] == res["place_5m"]["recall_at_100_precision"]
     assert min(p.query for p in run.predictions) >= 64  # nothing on the first lap (no revisit)
+
+
+def test_mapclosures_gt_map_range_from_the_method_name():
+    from graffmatch.errors import InvalidInputError
+    from graffmatch.evaluation.sequence_benchmark import _map_range
+
+    assert _map_range("mapclosures-gt") == 50.0  # the setting
+    assert _map_range("mapclosures-gt:25") == 25.0
+    for bad in ("mapclosures-gt:", "mapclosures-gt:x", "mapclosures-gt:0", "mapclosures-gt:nan"):
+        with pytest.raises(InvalidInputError, match="mapclosures-gt:R"):
+            _map_range(bad)
