@@ -43,6 +43,24 @@ def gt_overlap(P: np.ndarray, map_of_scan: np.ndarray, a: int, b: int, radius: f
     return int((np.linalg.norm(B[:, None] - A[None], axis=2).min(axis=1) <= radius).sum())
 
 
+def reachable_positives(ds, map_of_scan: np.ndarray, min_gap: int) -> tuple[int, int]:
+    """(queries with a GT partner within 5 m in a map the package compares theirs with, i.e. at
+    least ``min_gap`` maps older; the benchmark's positives): an upper bound of the scan-level
+    recall any closure-to-scan conversion can reach."""
+    from graffmatch.evaluation.sequence_benchmark import benchmark_config, positives
+    from graffmatch.loops.retrieval import eligible_count
+
+    ret = benchmark_config().retrieval
+    X, t = np.asarray(ds.poses, float)[:, :3, 3], np.asarray(ds.timestamps, float)
+    pos = positives(np.asarray(ds.poses, float), t, ret, 5.0)
+    reach = 0
+    for q in np.flatnonzero(pos):
+        e = eligible_count(t, int(q), ret)
+        near = np.linalg.norm(X[:e] - X[q], axis=1) <= 5.0
+        reach += bool((near & (map_of_scan[:e] <= map_of_scan[q] - min_gap)).any())
+    return reach, int(pos.sum())
+
+
 def run_drive(ds, max_range: float, id_stride: int = 1, crop_m: float | None = None,
               keep_m: float | None = None) -> dict:
     """One drive through the pipeline's loop; ``crop_m`` / ``keep_m`` override the scan crop and
@@ -86,6 +104,7 @@ def run_drive(ds, max_range: float, id_stride: int = 1, crop_m: float | None = N
             vmap.integrate_frame(keep, invert(P[i]) @ map_pose)
             map_pose, start, k = P[i].copy(), i, k + 1
     seconds = time.perf_counter() - t0
+    reach, n_pos = reachable_positives(ds, map_of_scan, -(-4 // id_stride))
     pairs = [{"a": a, "b": b, "scans_of_b_within_5m": gt_overlap(P, map_of_scan, a, b)}
              for a in range(k) for b in range(a + 1, k)]
     closures = [c for c in candidates if c["inliers"] > cfg.inliers_threshold]
@@ -96,6 +115,7 @@ def run_drive(ds, max_range: float, id_stride: int = 1, crop_m: float | None = N
         "revisit_pairs": [p for p in pairs if p["scans_of_b_within_5m"] > 0],
         "candidates": candidates, "inliers_threshold": cfg.inliers_threshold,
         "n_closures": len(closures),
+        "positives_5m": n_pos, "positives_in_compared_maps": reach,
         "n_closures_within_2m_5deg": sum(c["err_m"] <= 2.0 and c["err_deg"] <= 5.0 for c in closures),
         "seconds": seconds,
     }
@@ -128,6 +148,7 @@ def main() -> None:
             cand = ", ".join(f"{c['source']}-{c['target']}:{c['inliers']}" for c in row["candidates"])
             print(f"{row['sequence']} max_range {r:g} m: {row['n_maps']} maps, path {row['path_m']:.0f} m, "
                   f"{row['n_closures']} closures ({row['n_closures_within_2m_5deg']} within 2 m / 5 deg), "
+                  f"positives {row['positives_in_compared_maps']} of {row['positives_5m']} in compared maps, "
                   f"candidates source-target:inliers [{cand}], {row['seconds']:.0f} s", flush=True)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
