@@ -123,6 +123,12 @@ def test_run_mapclosures_ground_truth_poses_on_a_two_lap_drive():
     assert res["place_5m"]["recall_at_100_precision"] == pytest.approx(len(run.predictions) / n_pos)
     assert res["e2e_5m"]["recall_at_100_precision"] == res["place_5m"]["recall_at_100_precision"]
     assert min(p.query for p in run.predictions) >= 64  # nothing on the first lap (no revisit)
+    # confidence = the closure's inliers + at most 0.5 for how near the scan is placed: the scans
+    # of one closure are ordered, and never above the next inlier count
+    conf = np.array([p.confidence for p in run.predictions])
+    frac = conf - np.floor(conf)
+    assert frac.min() >= 0.0 and frac.max() <= 0.5
+    assert len(np.unique(conf)) > len(np.unique(np.floor(conf)))
 
 
 def test_mapclosures_gt_map_range_from_the_method_name():
