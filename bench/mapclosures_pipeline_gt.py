@@ -1,6 +1,6 @@
 """MapClosures' own pipeline loop with ground-truth poses instead of KISS-ICP (issue 15).
 
-A reference to check ``run_mapclosures`` (graffmatch.evaluation.sequence_benchmark) against:
+A reference to check ``run_mapclosures`` (graffmatch.evaluation.mapclosures_baseline) against:
 this script drives the installed package's Python API (``MapClosures``, ``VoxelMap``) the way
 ``map_closures.pipeline.MapClosurePipeline`` does, written from reading it, with one change: the
 pose of scan i is the ground truth, not KISS-ICP's. Its one range knob (``--max-range``, KISS-ICP's

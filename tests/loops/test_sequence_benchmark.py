@@ -108,7 +108,7 @@ class _SquareDrive:
 
 def test_run_mapclosures_ground_truth_poses_on_a_two_lap_drive():
     pytest.importorskip("map_closures")
-    from graffmatch.evaluation.sequence_benchmark import run_mapclosures
+    from graffmatch.evaluation.mapclosures_baseline import run_mapclosures
 
     ds = _SquareDrive()
     cfg = RetrievalConfig(exclude_seconds=10.0)
@@ -133,10 +133,10 @@ def test_run_mapclosures_ground_truth_poses_on_a_two_lap_drive():
 
 def test_mapclosures_gt_map_range_from_the_method_name():
     from graffmatch.errors import InvalidInputError
-    from graffmatch.evaluation.sequence_benchmark import _map_range
+    from graffmatch.evaluation.mapclosures_baseline import map_range
 
-    assert _map_range("mapclosures-gt") == 50.0  # the setting
-    assert _map_range("mapclosures-gt:25") == 25.0
+    assert map_range("mapclosures-gt") == 50.0  # the setting
+    assert map_range("mapclosures-gt:25") == 25.0
     for bad in ("mapclosures-gt:", "mapclosures-gt:x", "mapclosures-gt:0", "mapclosures-gt:nan"):
         with pytest.raises(InvalidInputError, match="mapclosures-gt:R"):
-            _map_range(bad)
+            map_range(bad)
