@@ -384,8 +384,10 @@ def _occupancy_bitmap_reference(points: NDArray[np.float64], voxel: float) -> tu
     origin = base.min(axis=0)
     ijk = base - origin  # >= 0; the face neighbours reach -1 .. max + 1
     top = ijk.max(axis=0)
+    if top.max() >= (1 << (_KEY_BITS - 1)) - 3:  # before the cast: far coordinates overflow int64
+        return None
     dims = top.astype(np.int64) + 3
-    if float(np.prod(dims.astype(float))) > OCCUPANCY_BITS or top.max() >= (1 << (_KEY_BITS - 1)) - 3:
+    if float(np.prod(dims.astype(float))) > OCCUPANCY_BITS:
         return None
     bits = np.zeros((int(np.prod(dims)) + 7) // 8, np.uint8)
     _set_face_bits(ijk.astype(np.int64), dims, bits)
