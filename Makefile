@@ -23,6 +23,9 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e ".[dev,baselines,calib,cluster,loops,ray]"
+	# MapClosures (the loop benchmark's competitor, its tests): map-closures 2.2 declares numpy<2.3
+	# but runs on the numpy above; --no-deps so it cannot downgrade it (its own deps are installed)
+	$(PY) -m pip install -q --no-deps "map-closures>=2.0,<3"
 	@touch $(STAMP)
 
 setup: $(STAMP)
