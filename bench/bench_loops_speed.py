@@ -19,6 +19,14 @@ average before and after the drive):
   verified, early stop (``quick-20`` is the default since it lifts retrieval recall).
 
 Also reported per mode: candidates verified per query and the queries with an accepted loop.
+
+With ``--odometry kiss-icp`` (or ``drift`` ... any KITTI file name under ``<runs>/<drive>/``, or a
+path) the odometry poses of the recorded run go into the database, so that the default
+``descriptor+radius`` retriever adds the scans near the odometry estimate, as in
+``bench/bench_loops.py --odometry kiss-icp`` (without it the retriever is the descriptor alone:
+sessions 4-10's timings). ``--records`` writes one JSON line per timed query (its time, its
+candidates, which were verified, on points or landmarks, and their seconds): the distribution, not
+just the mean (session 13).
 """
 
 from __future__ import annotations
@@ -52,12 +60,19 @@ def main() -> None:
     ap.add_argument("--stride", type=int, default=4)
     ap.add_argument("--prepare", action="store_true")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--odometry", default=None,
+                    help="'kiss-icp' (<runs>/<raw drive>/kiss_icp_kitti.txt) or a KITTI pose file: positions and "
+                    "poses for the descriptor+radius retriever and sequence consistency")
+    ap.add_argument("--records", type=Path, default=None, help="one JSON line per timed query")
     args = ap.parse_args()
+
+    import json
 
     import numpy as np
 
     from graffmatch.datasets.registry import open_dataset
     from graffmatch.evaluation.sequence_benchmark import benchmark_config
+    from graffmatch.geometry.pose_files import read_kitti
     from graffmatch.loops.database import LandmarkDatabase, load_landmarks
     from graffmatch.loops.descriptor import landmark_descriptor
     from graffmatch.loops.detector import LoopDetector
@@ -66,6 +81,7 @@ def main() -> None:
 
     rows = []
     load0 = os.getloadavg()[0]
+    rec_f = open(args.records, "w") if args.records else None
     for drive in args.drives:
         lm_dir = args.runs / drive / "ours" / "landmarks"
         files = sorted(lm_dir.glob("[0-9]" * 6 + ".npz"))
@@ -83,6 +99,15 @@ def main() -> None:
             ls = load_landmarks(f)
             db.add(ls, landmark_descriptor(ls, base.descriptor), float(stamps[i]))
         db.extra["quick"] = [quick_index(ls, base.quick) for ls in db.landmarks]
+        poses = None
+        if args.odometry:
+            odo = Path(args.odometry)
+            if args.odometry == "kiss-icp":
+                odo = args.runs / drive.removesuffix("+deskew") / "kiss_icp_kitti.txt"
+            poses = read_kitti(odo)
+            if len(poses) != len(db):
+                raise SystemExit(f"{odo}: {len(poses)} poses for {len(db)} scans")
+            db.positions = [p[:3, 3].copy() for p in poses]
         for mode in args.modes:
             cfg = base.model_copy(deep=True)
             opts = MODES[mode]
@@ -91,12 +116,16 @@ def main() -> None:
             cfg.verification.stop_when_accepted = opts["stop_when_accepted"]
             det = LoopDetector(cfg)
             det.db = db
+            if poses is not None:  # sequence consistency reads the poses given to add()
+                det._poses = list(poses)
+            t_w, c_w = time.perf_counter(), time.process_time()
             # warm-up (numba compilation, caches) outside the clock
             for q in range(len(db) - 1, len(db) - 4, -1):
                 det.detect(q)
+            warm = (time.perf_counter() - t_w, time.process_time() - c_w)
             qs = [q for q in range(0, len(db), args.stride) if eligible_count(db.timestamps, q, cfg.retrieval) > 0]
             per, cpu, ver_s, nver, nloop = [], [], [], [], 0
-            ret_s, quick_s, npass = [], [], []
+            ret_s, quick_s, npass, ncand, nver_pts = [], [], [], [], []
             load_a = os.getloadavg()[0]
             for q in qs:
                 c0 = time.process_time()
@@ -111,6 +140,16 @@ def main() -> None:
                 quick_s.append(sum(r["seconds"] - r.get("verify_seconds", 0.0) for r in recs))
                 npass.append(sum(r["quick_pass"] for r in recs))
                 nloop += bool(loops)
+                ncand.append(len(recs))
+                nver_pts.append(sum(bool(r.get("on_points")) for r in recs if r["verified"]))
+                if rec_f:
+                    rec_f.write(json.dumps({
+                        "drive": drive, "mode": mode, "query": q, "ms": 1e3 * per[-1], "cpu_ms": 1e3 * cpu[-1],
+                        "retrieve_ms": 1e3 * ret_s[-1], "quick_ms": 1e3 * quick_s[-1], "loop": bool(loops),
+                        "candidates": len(recs), "quick_passing": npass[-1],
+                        "verified": [{"match": r["match"], "rank": r["rank"], "on_points": bool(r.get("on_points")),
+                                      "ms": 1e3 * r.get("verify_seconds", 0.0), "confidence": r["confidence"]}
+                                     for r in recs if r["verified"]]}) + "\n")
             per_a, ver_a = 1e3 * np.asarray(per), 1e3 * np.asarray(ver_s)
             row = {"drive": drive, "mode": mode, "queries": len(qs), "ms_per_query_mean": float(per_a.mean()),
                    "ms_per_query_median": float(np.median(per_a)), "ms_per_query_p90": float(np.percentile(per_a, 90)),
@@ -123,9 +162,19 @@ def main() -> None:
                    "quick_passing_per_query": float(np.mean(npass)),
                    "ms_per_verification": float(ver_a.sum() / max(sum(nver), 1)),
                    "verified_per_query": float(np.mean(nver)), "queries_with_loop": nloop,
+                   "ms_per_query_max": float(per_a.max()), "cpu_ms_per_query_median": 1e3 * float(np.median(cpu)),
+                   "cpu_ms_per_query_p95": 1e3 * float(np.percentile(cpu, 95)),
+                   "cpu_ms_per_query_max": 1e3 * float(np.max(cpu)),
+                   "candidates_per_query": float(np.mean(ncand)), "candidates_per_query_max": int(np.max(ncand)),
+                   "verified_on_points_per_query": float(np.mean(nver_pts)),
+                   "retriever": cfg.retrieval.method if poses is not None else "descriptor (no positions)",
+                   "odometry": None if poses is None else str(odo),
+                   "warmup_s": warm[0], "warmup_cpu_s": warm[1],
                    "load_before": load_a, "load_after": os.getloadavg()[0]}
             rows.append(row)
             print(row, flush=True)
+    if rec_f:
+        rec_f.close()
     if not args.prepare:
         write_json(str(args.json) if args.json else None,
                    {"machine": machine(), "load_at_start": load0, "load_at_end": os.getloadavg()[0], "rows": rows})
