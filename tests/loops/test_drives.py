@@ -258,3 +258,30 @@ def test_no_revisits_no_loops_with_odometry_and_the_default_retriever(drives, tm
     # 2 m a scan and 30 excluded: nothing eligible is within 5 m + 2 % of the path, so the
     # candidates are exactly the descriptor's
     assert s["n_candidates_retrieved"] == sum(min(20, max(0, q - excl)) for q in range(N_STRAIGHT))
+
+
+def test_kernel_warm_up_is_kept_out_of_query_times_and_changes_no_loop(drives, tmp_path, monkeypatch):
+    """run_loops' workers warm the numba kernels up once, before any query's clock, and report it
+    apart (``worker_warmup_cpu_s``); every record (candidates, poses, confidences) and loop equals
+    that of a run without the warm-up (docs/loops.md, session 13)."""
+    import shutil
+
+    from graffmatch.loops import detector
+
+    ds, out, summary = drives["rev"]
+    runs = {}
+    for name, warmed in (("warm-up", set()), ("none", {"landmarks", "points"})):
+        target = tmp_path / name
+        shutil.copytree(out / "landmarks", target / "landmarks")
+        monkeypatch.setattr(detector, "_WARMED", set(warmed))  # workers=1: this process runs the queries
+        runs[name] = (run_loops(ds, target, _config(), workers=1), read_queries(target))
+
+    def strip(recs):
+        return {q: [{k: v for k, v in c.items() if "seconds" not in k} for c in r["candidates"]]
+                for q, r in recs.items()}
+
+    (s_warm, r_warm), (s_none, r_none) = runs["warm-up"], runs["none"]
+    assert s_warm["worker_warmup_cpu_s"] > 0.0 and s_none["worker_warmup_cpu_s"] == 0.0
+    assert strip(r_warm) == strip(r_none) and len(r_warm) == N_SCANS
+    assert s_warm["n_loops"] == s_none["n_loops"] == summary["n_loops"] > 0
+    assert (tmp_path / "warm-up" / "loops.csv").read_bytes() == (tmp_path / "none" / "loops.csv").read_bytes()
