@@ -1344,6 +1344,7 @@ def solve_clipper(weights: sp.spmatrix | ConsistencyGraph, config: ClipperConfig
     """
     cfg = config or ClipperConfig()
     wdeg = None  # weighted degrees, from the validation pass or the graph builder
+    w_max = None  # the largest weight, from the graph builder
     checked = False
     if isinstance(weights, ConsistencyGraph):
         csr = (weights.indptr, weights.indices, weights.data)
@@ -1351,6 +1352,7 @@ def solve_clipper(weights: sp.spmatrix | ConsistencyGraph, config: ClipperConfig
         if weights.weighted_degrees is not None and weights.weighted_degrees.shape == (m,):
             # built by build_consistency_graph: weights in (0, 1], no diagonal, degrees known
             wdeg, checked = weights.weighted_degrees, True
+            w_max = weights.max_weight
     else:
         W = weights if isinstance(weights, sp.csr_matrix) else sp.csr_matrix(weights)
         if W.shape[0] != W.shape[1]:
@@ -1367,12 +1369,12 @@ def solve_clipper(weights: sp.spmatrix | ConsistencyGraph, config: ClipperConfig
             csr, wdeg = _csr_parts(W), None
     sol = _solve_once(csr, m, cfg, u0)
     if cfg.greedy_starts and csr[1].shape[0]:
-        _greedy_stage(csr, sol, cfg, wdeg)
+        _greedy_stage(csr, sol, cfg, wdeg, w_max)
     return sol
 
 
 def _greedy_stage(csr: tuple, sol: ClipperSolution, cfg: ClipperConfig,
-                  wdeg: NDArray[np.float64] | None = None) -> None:
+                  wdeg: NDArray[np.float64] | None = None, w_max: float | None = None) -> None:
     """Let greedy cliques compete with CLIPPER's clique (in place on ``sol``), only where they can win.
 
     A clique of k vertices has objective <= 1 + (k - 1) w_max, so one that beats CLIPPER's
@@ -1380,11 +1382,12 @@ def _greedy_stage(csr: tuple, sol: ClipperSolution, cfg: ClipperConfig,
     start and grow inside that core only (a mask, no copy), from the ``greedy_starts``
     best-connected core vertices: a growth that would leave the core ends in a clique too small
     to win, and a growth that can win picks only core vertices, so the restriction loses no
-    winner."""
+    winner. ``wdeg`` / ``w_max``: the weighted degrees and the largest weight when known (from
+    the graph builder), else computed here."""
     indptr, indices, data = csr
     m = indptr.shape[0] - 1
     density = _clique_objective(indptr, indices, data, sol.selected, m)
-    w_max = float(data.max())
+    w_max = float(data.max()) if w_max is None else w_max
     k_min = int(np.floor((density - 1.0) / w_max)) + 2 if w_max > 0 else m + 1
     core = _kcore_keep(indptr, indices, k_min - 1) if k_min > 1 else np.ones(m, dtype=np.bool_)
     keep = np.flatnonzero(core)

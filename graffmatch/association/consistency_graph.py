@@ -43,6 +43,9 @@ class ConsistencyGraph:
     # Row sums of ``data``, set only by :func:`build_consistency_graph`, whose weights are in
     # (0, 1] with no diagonal by construction: the solver then skips its validation pass.
     weighted_degrees: NDArray[np.float64] | None = None
+    # The largest stored weight (0 without edges), also from the build: the greedy cliques'
+    # bound needs it, and numpy's max over W2's 2.5 M weights costs ~0.4 ms.
+    max_weight: float | None = None
 
     @property
     def m(self) -> int:
@@ -230,9 +233,44 @@ def _fill_affine_row(a, d_row, win0, win1, row_base, col_k, vals_p, indices, pos
     return n
 
 
+# A row of n float32 weights in [min, max] with 0 < min and max <= min / (n x this scale) sums
+# exactly in float64 in any order (see :func:`_row_sum_any_order`).
+_EXACT_SUM_SCALE = 2.0**-29
+
+
+@nb.njit(cache=True, fastmath=True)
+def _row_sum_any_order(w, bounds):
+    """The sum of a row's float32 weights, reassociated (vectorised); their smallest and largest
+    into ``bounds`` (a float32 pair).
+
+    Why it still equals the sum in order (s = 0; s += w[t]), bit for bit, whenever
+    0 < min <= max <= min 2**29 / n (n = len(w); the caller checks): every weight is a float32
+    >= min >= 2**e with e = floor(log2(min)), so a multiple of q = 2**(e - 23); every partial
+    sum, in any order, is a multiple of q of at most n max < 2**53 q (as 2**e > min / 2), so
+    float64 holds it exactly and no addition rounds. At W2 (rows of ~900 weights in
+    [3.4e-4, 1]) min may go down to 1.7e-6. The in-order sum waits on each addition's latency:
+    ~1.6 of W2's 13 ms build. min and max are taken on the bits (for floats >= +0 their order
+    is the integers'; a negative or NaN weight fails the caller's check), which vectorises where
+    float min / max do not."""
+    s = 0.0
+    for t in range(w.shape[0]):
+        s += w[t]
+    bits = w.view(np.uint32)
+    lo = np.uint32(0xFFFFFFFF)
+    hi = np.uint32(0)
+    for t in range(bits.shape[0]):
+        b = bits[t]
+        lo = min(lo, b)
+        hi = max(hi, b)
+    out = bounds.view(np.uint32)
+    out[0] = lo
+    out[1] = hi
+    return s
+
+
 @nb.njit(cache=True)
 def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_two_sigma2, n_groups, weights,
-           index, squarings, keep_windows, row_base, col_rank):
+           index, squarings, keep_windows, row_base, col_rank, exact_scale):
     """Symmetric CSR (indptr, indices, data) of the graph over the associations ``assoc``
     (``lookup[a, b]`` = vertex id or -1), with ``index``'s and ``weights``' dtypes (empty
     arrays), written row by row: row u = (a, b) takes, for every other source landmark a2 of
@@ -241,8 +279,11 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
     (with ``all_valid``, every same-group pair is an association: the window sizes). With
     ``keep_windows`` the first pass stores every row's windows for the second (one merge of the
     sorted runs per row instead of two). Also returns the weighted degrees (row sums of the
-    stored weights, summed in order as :func:`~graffmatch.association.clipper.solve_clipper`'s
-    validation pass does), so the solver need not read the graph once more for them.
+    stored weights, equal to the sum in order that
+    :func:`~graffmatch.association.clipper.solve_clipper`'s validation pass does, see
+    :func:`_row_sum_any_order`) and the largest weight (0 for no edges), so the solver need not
+    read the graph once more for them. ``exact_scale``: :data:`_EXACT_SUM_SCALE` for float32
+    weights, 0 for others (their rows are summed in order).
 
     Non-empty ``row_base`` / ``col_rank``: ``lookup[a2, b2] = row_base[a2] + col_rank[b2]`` for
     every same-group pair (all-to-all in :func:`all_to_all`'s order), so a vertex id is a
@@ -284,6 +325,8 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
     indices = np.empty(indptr[m] + _CHUNK, dtype=index.dtype)  # (+ a chunk: see the affine fill)
     data = np.empty(indptr[m], dtype=weights.dtype)
     wdeg = np.zeros(m)
+    w_max = 0.0
+    bounds = np.zeros(2, dtype=np.float32)  # a row's smallest and largest weight
     buf_x = np.empty(longest + _CHUNK)
     buf_w = np.empty(longest)
     for u in range(m):
@@ -313,13 +356,26 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
                 n += 1
         # the row's weights in one branch-free (vectorised) loop
         _exp_nonpositive(buf_x, buf_w, n, squarings)
-        s = 0.0
         row_w = data[pos:pos + n]
-        for t in range(n):
-            row_w[t] = buf_w[t]
-            s += row_w[t]
+        s = 0.0
+        hi = 0.0
+        exact = False
+        if exact_scale > 0.0 and n:  # float32 weights
+            for t in range(n):
+                row_w[t] = buf_w[t]
+            s = _row_sum_any_order(row_w, bounds)
+            lo, hi = np.float64(bounds[0]), np.float64(bounds[1])
+            exact = lo > 0.0 and hi >= lo and lo >= n * hi * exact_scale
+        if n and not exact:
+            s = 0.0  # the sum may round: add in order, as the solver's validation pass does
+            hi = 0.0
+            for t in range(n):
+                row_w[t] = buf_w[t]
+                s += row_w[t]
+                hi = max(hi, np.float64(row_w[t]))
         wdeg[u] = s
-    return indptr, indices[: indptr[m]], data, wdeg
+        w_max = max(w_max, hi)
+    return indptr, indices[: indptr[m]], data, wdeg, w_max
 
 
 @nb.njit(cache=True)
@@ -418,10 +474,11 @@ def build_consistency_graph(
     row_base, col_rank = _affine_ids(lookup, gi, gj) if all_valid else (None, None)
     if row_base is None:
         row_base = col_rank = np.zeros(0, dtype=np.int64)
-    indptr, indices, data, wdeg = _build(
+    indptr, indices, data, wdeg, w_max = _build(
         D_i, D_j, gi, gj, assoc, lookup, all_valid, float(epsilon), inv2s2, n_groups,
         np.empty(0, dtype=dtype), index, _squarings(float(epsilon), inv2s2),
         m * n_i * 8 <= _MAX_WINDOW_TABLE_BYTES and n_j * n_j < 2**31,  # int32 window ends
         row_base, col_rank,
+        _EXACT_SUM_SCALE if np.dtype(dtype) == np.float32 else 0.0,  # float32's 24-bit significand
     )
-    return ConsistencyGraph(assoc, indptr, indices, data, wdeg)
+    return ConsistencyGraph(assoc, indptr, indices, data, wdeg, float(w_max))

@@ -283,3 +283,47 @@ def test_weights_and_degrees_equal_their_definition_bit_for_bit():
     seq = np.array([np.cumsum(g.data[g.indptr[u]:g.indptr[u + 1]].astype(np.float64))[-1]
                     if g.indptr[u + 1] > g.indptr[u] else 0.0 for u in range(g.m)])
     assert np.array_equal(g.weighted_degrees, seq)
+
+
+def _sums_in_order(g) -> np.ndarray:
+    out = np.zeros(g.m)
+    for u in range(g.m):
+        s = 0.0
+        for w in g.data[g.indptr[u]:g.indptr[u + 1]].astype(np.float64).tolist():
+            s += w
+        out[u] = s
+    return out
+
+
+def test_row_sums_in_any_order_equal_the_sums_in_order():
+    """The build sums a row's float32 weights reassociated only where no partial sum can round
+    (smallest >= n x largest x 2**-29), so the degrees equal the in-order sums bit for bit; rows
+    outside that bound (a wide epsilon: weights down to exp(-72)), float64 weights and
+    adversarial rows are summed in order. ``max_weight`` is the largest stored weight."""
+    import math
+
+    from graffmatch.association.consistency_graph import _EXACT_SUM_SCALE, _row_sum_any_order
+
+    rng = np.random.default_rng(4)
+    bounds = np.zeros(2, dtype=np.float32)
+    for n, lo in ((1, 0.5), (7, 1e-3), (900, 3.4e-4), (4000, 3.4e-4), (4000, 4000 * _EXACT_SUM_SCALE)):
+        w = rng.uniform(lo, 1.0, n).astype(np.float32)
+        w[0] = np.float32(lo)
+        w[-1] = 1.0
+        s = _row_sum_any_order(w, bounds)
+        assert bounds[0] == w.min() and bounds[1] == w.max()
+        seq = 0.0
+        for x in w.astype(np.float64).tolist():
+            seq += x
+        assert s == seq == math.fsum(w.astype(np.float64))
+    sc = make_scene_pair(10, 16, seed=1)
+    Di, Dj = pairwise_distances(sc.source), pairwise_distances(sc.target)
+    kw = dict(types_i=sc.source.types, types_j=sc.target.types)
+    for extra in ({}, {"epsilon": 0.6}, {"dtype": np.float64}):
+        g = build_consistency_graph(Di, Dj, **kw, **extra)
+        assert g.n_edges > 100
+        assert np.array_equal(g.weighted_degrees, _sums_in_order(g))
+        assert g.max_weight == float(g.data.max())
+    assert float(build_consistency_graph(Di, Dj, epsilon=0.6, **kw).data.min()) < 1e-20  # outside the bound
+    empty = build_consistency_graph(Di[:1, :1], Dj[:1, :1], **dict(types_i=kw["types_i"][:1], types_j=kw["types_j"][:1]))
+    assert empty.n_edges == 0 and empty.max_weight == 0.0
