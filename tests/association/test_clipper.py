@@ -550,9 +550,9 @@ def test_dense_blocks_equal_a_numpy_reference_and_shrink_from_the_previous_block
     store = np.full(rows.size**2 + 7, np.nan, dtype=np.float32)  # larger than the block: a view of its start
     block = _dense_block(W.indptr, W.indices, W.data, rows, d, store)
     assert block.dtype == np.float32 and block.shape == ref.shape and np.array_equal(block, ref)
-    assert np.shares_memory(block, store) and np.isnan(store[rows.size**2:]).all()
+    assert np.shares_memory(block, store) and np.isnan(store[rows.size**2 + 1:]).all()  # (+ 1: a spare entry)
     sub = np.sort(rng.choice(rows.size, 90, replace=False))  # positions in ``rows``
-    expected = _dense_block(W.indptr, W.indices, W.data, rows[sub], 5.25, np.empty(90 * 90, np.float32)).copy()
+    expected = _dense_block(W.indptr, W.indices, W.data, rows[sub], 5.25, np.empty(90 * 90 + 1, np.float32)).copy()
     shrunk = _dense_block_shrink(store, rows.size, sub, 5.25)  # in place, over the block it reads
     assert np.shares_memory(shrunk, store) and np.array_equal(shrunk, expected)
     assert (shrunk == np.float32(-5.25)).sum() == (ref[np.ix_(sub, sub)] < 0).sum() > 0
