@@ -325,15 +325,16 @@ def trajectory_errors(estimate: Array, reference: Array, rpe_delta: int = 10) ->
     return out
 
 
-def odometry_for(dataset, source: str, drift: OdometryDriftConfig | None = None) -> Array:
+def odometry_for(dataset, source: str, drift: OdometryDriftConfig | None = None, deskew: bool = False) -> Array:
     """Odometry poses of a dataset: 'gt' (its poses), 'drift' (its poses with simulated drift),
-    'kiss-icp' (KISS-ICP on the scans) or a KITTI pose file path (LiDAR-to-world)."""
+    'kiss-icp' (KISS-ICP on the scans; with ``deskew`` the scans are raw and KISS-ICP de-skews
+    them itself, see :func:`kiss_icp_odometry`) or a KITTI pose file path (LiDAR-to-world)."""
     if source == "gt":
         return np.asarray(dataset.poses, float)
     if source == "drift":
         return drifted_odometry(dataset.poses, drift)
     if source == "kiss-icp":
-        return kiss_icp_odometry(dataset)
+        return kiss_icp_odometry(dataset, deskew=deskew)
     from pathlib import Path
 
     from graffmatch.geometry.pose_files import read_kitti
@@ -344,17 +345,53 @@ def odometry_for(dataset, source: str, drift: OdometryDriftConfig | None = None)
     return P
 
 
-def kiss_icp_odometry(dataset) -> Array:
+#: what :func:`kiss_icp_odometry` returns, for caches keyed by it: bump when its poses change
+KISS_ICP_ODOMETRY_VERSION = 2
+
+
+def kiss_end_to_mid(delta: Array) -> Array:
+    """T_end_mid: the mid-sweep frame in the end-of-sweep frame, for a sweep that moves by
+    ``delta`` (4x4, the sensor's motion over one sweep) at constant velocity, as KISS-ICP's
+    de-skew models it: exp(-0.5 log(delta)) on SE(3).
+
+    KISS-ICP 1.x de-skews a scan into the frame at the *end* of its sweep (its C++
+    ``Preprocessor``: each point moved by exp((t - 1) log(delta)), t its time normalised to
+    [0, 1]), so its poses are end-of-sweep poses. The datasets' poses (KITTI's, the
+    simulator's) and :mod:`graffmatch.lidar.deskew` take a scan at mid-sweep: half a sweep
+    later is 0.5 m at 10 m/s, and a heading off by half a sweep's yaw in turns.
+    """
+    from scipy.linalg import expm, logm
+
+    D = np.asarray(delta, float)
+    if np.allclose(D, np.eye(4), atol=1e-12):
+        return np.eye(4)
+    out = np.real(expm(-0.5 * np.real(logm(D))))
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+def kiss_icp_odometry(dataset, deskew: bool = False) -> Array:
     """KISS-ICP (Vizzo et al. 2023) with its defaults, scan by scan; poses in scan 0's frame,
-    moved into the dataset's world frame with the first pose."""
+    moved into the dataset's world frame with the first pose.
+
+    ``deskew`` (raw, motion-distorted scans): KISS-ICP de-skews each scan itself, with per-point
+    times from the azimuth (:func:`graffmatch.lidar.deskew.azimuth_times`: the sweep starts
+    behind the sensor, forward at mid-sweep) and its constant-velocity prediction, and every
+    pose is moved from the end of the sweep, where KISS-ICP puts it, to mid-sweep, where the
+    dataset's poses and our de-skew expect it (:func:`kiss_end_to_mid`). Without that shift the
+    de-skewed odometry was worse than none on a suburban check (docs/loops.md, session 13).
+    Without ``deskew`` the scans are registered as they are (already de-skewed data).
+    """
     try:
         from kiss_icp.config import KISSConfig
         from kiss_icp.kiss_icp import KissICP
     except ImportError as exc:
         raise GraffMatchError("KISS-ICP odometry needs: pip install 'graffmatch[loops]'") from exc
+    from graffmatch.lidar.deskew import azimuth_times
+
     cfg = KISSConfig()
     cfg.data.max_range = 100.0
-    cfg.data.deskew = False
+    cfg.data.deskew = bool(deskew)
     if cfg.mapping.voxel_size is None:  # what KISS-ICP's own load_config does
         cfg.mapping.voxel_size = float(cfg.data.max_range / 100.0)
     odo = KissICP(cfg)
@@ -362,8 +399,10 @@ def kiss_icp_odometry(dataset) -> Array:
     poses = []
     for i in range(n):
         pts = np.asarray(dataset[i].points[:, :3], np.float64)
-        odo.register_frame(pts, np.zeros(len(pts)))
-        poses.append(np.asarray(odo.last_pose, float).copy())
+        delta = np.asarray(odo.last_delta, float).copy()  # the motion KISS-ICP de-skews this scan with
+        odo.register_frame(pts, azimuth_times(pts) + 0.5 if deskew else np.zeros(0))
+        T = np.asarray(odo.last_pose, float).copy()
+        poses.append(T @ kiss_end_to_mid(delta) if deskew else T)
     P0 = np.asarray(dataset.poses[0], float)
     return np.stack([P0 @ T for T in poses])
 

@@ -252,10 +252,11 @@ def prepare_drive(
 
     ``odometry``: ``drift`` | ``gt`` | ``kiss-icp`` | a KITTI pose file (see
     :func:`graffmatch.loops.posegraph.odometry_for`; ``drift`` with ``drift``, an
-    ``OdometryDriftConfig``). With ``deskew`` every raw scan is moved into its mid-sweep frame
-    with that odometry's motion (:class:`graffmatch.datasets.Deskewed`: another name and cache
-    tag, so its landmarks never mix with the raw scans'). One function for ``graffmatch loops``
-    and ``graffmatch benchmark-loops``, so both see the same scans.
+    ``OdometryDriftConfig``; ``kiss-icp`` de-skews the raw scans itself when ``deskew``). With
+    ``deskew`` every raw scan is moved into its mid-sweep frame with that odometry's motion
+    (:class:`graffmatch.datasets.Deskewed`: another name and cache tag, so its landmarks never
+    mix with the raw scans'). One function for ``graffmatch loops`` and ``graffmatch
+    benchmark-loops``, so both see the same scans.
     """
     if deskew and odometry is None:
         raise InvalidInputError("deskew needs an odometry (drift, gt, kiss-icp or a KITTI pose file)")
@@ -263,7 +264,7 @@ def prepare_drive(
     if odometry is not None:
         from graffmatch.loops.posegraph import odometry_for
 
-        odo = odometry_for(dataset, odometry, drift)
+        odo = odometry_for(dataset, odometry, drift, deskew=deskew)
     if deskew:
         from graffmatch.datasets.deskewed import Deskewed
 
