@@ -5,7 +5,8 @@
 
 Simulates one drive per realism preset (KITTI layout, read back with the loader), runs
 KISS-ICP with its default configuration (max range 100 m, voxel 1 m, adaptive threshold;
-de-skewing with per-point times from the azimuth when the scans are raw), and reports the
+de-skewing with per-point times from the azimuth when the scans are raw, poses at mid-sweep:
+``graffmatch.loops.posegraph.kiss_icp_odometry``), and reports the
 drift: position error after aligning the first pose, at the end and its maximum, the first
 scan where it exceeds 2 m, and the relative translation error over 50 m segments [%].
 With --data it also runs KITTI 00 frames 0-5 as a sanity check.
@@ -23,28 +24,18 @@ import numpy as np
 
 from graffmatch.datasets.folder import KittiFolder
 from graffmatch.datasets.simulator import simulate_dataset
-from graffmatch.datasets.simulator.motion import azimuth_times
 from graffmatch.datasets.simulator.realism import get_realism
 from graffmatch.geometry.transforms import invert
 
 
-def run_kiss(seq, deskew: bool, max_range: float = 100.0) -> np.ndarray:
-    """(n, 4, 4) KISS-ICP poses of the scans of ``seq`` (first pose = identity)."""
-    from kiss_icp.config import KISSConfig
-    from kiss_icp.kiss_icp import KissICP
+def run_kiss(seq, deskew: bool) -> np.ndarray:
+    """(n, 4, 4) KISS-ICP poses of the scans of ``seq`` (first pose = identity), through the
+    library's ``kiss_icp_odometry`` (with ``deskew``: KISS-ICP's own de-skew from azimuth
+    times, poses moved to mid-sweep; session 13)."""
+    from graffmatch.loops.posegraph import kiss_icp_odometry
 
-    cfg = KISSConfig()
-    cfg.data.max_range = max_range
-    cfg.data.deskew = deskew
-    cfg.mapping.voxel_size = max_range / 100.0  # what KISS-ICP's config loader does
-    odom = KissICP(cfg)
-    poses = []
-    for i in range(len(seq)):
-        pts = seq[i].points[:, :3].astype(np.float64)
-        times = azimuth_times(pts) + 0.5 if deskew else np.zeros(0)
-        odom.register_frame(pts, times)
-        poses.append(odom.last_pose.copy())
-    return np.array(poses)
+    P = kiss_icp_odometry(seq, deskew=deskew)
+    return np.einsum("ij,njk->nik", invert(P[0]), P)
 
 
 def drift(est: np.ndarray, gt: np.ndarray, segment_m: float = 50.0) -> dict:

@@ -103,7 +103,8 @@ def loops(
     address: Annotated[str | None, typer.Option(help="Cluster address (dask/ray).")] = None,
     workers: Annotated[int | None, typer.Option(min=1, help="Local worker processes.")] = None,
     deskew: Annotated[
-        bool, typer.Option(help="De-skew raw scans with the odometry's motion first (KITTI ships them de-skewed).")
+        bool, typer.Option(help="De-skew raw scans with the odometry's motion first (KITTI ships them de-skewed); "
+                           "--odometry kiss-icp then de-skews them inside KISS-ICP too.")
     ] = False,
     use_odometry: Annotated[
         bool,
@@ -177,7 +178,8 @@ def benchmark_loops(
         bool, typer.Option(help="De-skew raw scans with the odometry's motion first, for every method (as loops --deskew).")
     ] = False,
     odometry: Annotated[
-        str, typer.Option(help="--deskew: odometry whose motion de-skews: drift | gt | kiss-icp | PATH (KITTI poses).")
+        str, typer.Option(help="--deskew: odometry whose motion de-skews: drift | gt | kiss-icp (de-skewing the raw "
+                           "scans itself) | PATH (KITTI poses).")
     ] = "drift",
     drift_yaw: Annotated[float, typer.Option(help="Simulated drift: heading bias (deg per 100 m).")] = 3.0,
     drift_seed: Annotated[int, typer.Option(help="Simulated drift seed.")] = 0,
