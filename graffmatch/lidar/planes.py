@@ -14,7 +14,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 from scipy.sparse import coo_matrix
@@ -154,6 +153,8 @@ def _empty(points: Array, n_patches: int = 0) -> PlaneResult:
 
 def downsample(points: Array, voxel_size: float) -> Array:
     """Voxel centroids (Open3D); deterministic."""
+    import open3d as o3d  # here, not at import: the matcher alone should not load Open3D (~100 MB)
+
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     return np.asarray(pc.voxel_down_sample(voxel_size).points)
 
@@ -164,6 +165,8 @@ def detect_patches(points: Array, cfg: PlaneConfig) -> NDArray[np.int64]:
     Open3D returns oriented boxes, not inliers; a point supports the first (largest) patch whose
     box, grown by ``box_inflation``, contains it and whose plane is within ``max_residual``.
     """
+    import open3d as o3d  # here, not at import (see downsample)
+
     m = points.shape[0]
     labels = np.full(m, -1, dtype=np.int64)
     if m < max(cfg.min_num_points, cfg.patch_knn, cfg.normal_knn, cfg.min_support):

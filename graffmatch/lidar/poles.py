@@ -18,7 +18,6 @@ from typing import Literal
 
 import numba as nb
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -172,6 +171,8 @@ def _empty(n: int) -> PoleResult:
 
 def poles_semantic(points: Array, semantic: NDArray[np.integer], cfg: PoleConfig) -> PoleResult:
     """Semantic mode: DBSCAN (Open3D) on points whose class is in ``cfg.semantic_classes``."""
+    import open3d as o3d  # here, not at import: the matcher alone should not load Open3D (~100 MB)
+
     n = points.shape[0]
     sem = np.asarray(semantic).reshape(-1)
     if sem.shape[0] != n:
