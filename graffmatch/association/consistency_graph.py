@@ -357,20 +357,19 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
         # the row's weights in one branch-free (vectorised) loop
         _exp_nonpositive(buf_x, buf_w, n, squarings)
         row_w = data[pos:pos + n]
+        for t in range(n):
+            row_w[t] = buf_w[t]
         s = 0.0
         hi = 0.0
         exact = False
         if exact_scale > 0.0 and n:  # float32 weights
-            for t in range(n):
-                row_w[t] = buf_w[t]
             s = _row_sum_any_order(row_w, bounds)
             lo, hi = np.float64(bounds[0]), np.float64(bounds[1])
             exact = lo > 0.0 and hi >= lo and lo >= n * hi * exact_scale
-        if n and not exact:
+        if not exact:
             s = 0.0  # the sum may round: add in order, as the solver's validation pass does
             hi = 0.0
             for t in range(n):
-                row_w[t] = buf_w[t]
                 s += row_w[t]
                 hi = max(hi, np.float64(row_w[t]))
         wdeg[u] = s
