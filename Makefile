@@ -42,8 +42,10 @@ browser:
 demo: $(STAMP)
 	$(VENV)/bin/graffmatch demo
 
+# Two pytest workers, one per core of the CI machine, each taking whole test files (tests of one
+# file share compiled kernels and fixtures): 631 s -> 445 s on a fresh clone, numba compiling.
 test: $(STAMP) browser
-	$(PY) -m pytest -q -p no:cacheprovider
+	$(PY) -m pytest -q -p no:cacheprovider -n 2 --dist loadfile
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check graffmatch tests bench
