@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from graffmatch.errors import InvalidInputError
 from graffmatch.geometry._distance_kernel import graff_distances_kernel
 from graffmatch.geometry.landmarks import Landmark, LandmarkSet
+from graffmatch.geometry.set_cache import kernel_input
 
 Array = NDArray[np.float64]
 Variant = Literal["invariant", "naive"]
@@ -167,14 +168,14 @@ def _check(rho: float, variant: str) -> None:
 def _kernel(types1, bases1, anchors1, types2, bases2, anchors2, ii, jj, rho, variant) -> Array:
     _check(rho, variant)
     return graff_distances_kernel(
-        np.ascontiguousarray(types1, dtype=np.int64),
-        np.ascontiguousarray(bases1, dtype=np.float64),
-        np.ascontiguousarray(anchors1, dtype=np.float64),
-        np.ascontiguousarray(types2, dtype=np.int64),
-        np.ascontiguousarray(bases2, dtype=np.float64),
-        np.ascontiguousarray(anchors2, dtype=np.float64),
-        np.ascontiguousarray(ii, dtype=np.int64),
-        np.ascontiguousarray(jj, dtype=np.int64),
+        kernel_input(types1, np.int64),
+        kernel_input(bases1, np.float64),
+        kernel_input(anchors1, np.float64),
+        kernel_input(types2, np.int64),
+        kernel_input(bases2, np.float64),
+        kernel_input(anchors2, np.float64),
+        kernel_input(ii, np.int64),
+        kernel_input(jj, np.int64),
         1.0 / float(rho),
         variant == "invariant",
     )

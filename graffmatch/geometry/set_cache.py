@@ -89,3 +89,16 @@ def _nbytes(value: Any) -> int:
 
 derived_cache = DerivedCache()
 """The process-wide cache of per-set derived values (distances, ground-free arrays, extents)."""
+
+
+def kernel_input(a: np.ndarray, dtype: type) -> np.ndarray:
+    """``a`` as a C-contiguous array of ``dtype``, always read-only (a view, no copy when it is
+    one already).
+
+    Why: numba compiles one signature per combination of read-only and writeable arguments.
+    Cached values here are read-only and fresh ones are not, so a scan verified a second time
+    (k candidates a query) met kernel variants that loaded, or on a fresh install compiled,
+    inside a timed query (docs/loops.md, session 13). One flag gives one signature."""
+    out = np.ascontiguousarray(a, dtype=dtype).view()
+    out.setflags(write=False)
+    return out

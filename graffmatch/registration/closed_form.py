@@ -35,6 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from graffmatch.errors import DegenerateGeometryError, InvalidInputError
 from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
+from graffmatch.geometry.set_cache import kernel_input
 
 Array = NDArray[np.float64]
 
@@ -1180,11 +1181,14 @@ def _register_batch_numba(
     if k == 0:
         raise DegenerateGeometryError("no associations to register")
     w = np.ones(k) if weights is None else np.ascontiguousarray(np.asarray(weights, dtype=float).reshape(-1))
-    ts_s = source.types if source.types.dtype == np.int8 else source.types.astype(np.int8)
-    tt_s = target.types if target.types.dtype == np.int8 else target.types.astype(np.int8)
+    # every array the kernels read goes in read-only: one compiled signature, whether it is a
+    # caller's fresh array or a cached one (kernel_input)
+    A, g, w = kernel_input(A, np.int64), kernel_input(g, np.int64), kernel_input(w, np.float64)
+    ts_s, tt_s = kernel_input(source.types, np.int8), kernel_input(target.types, np.int8)
     # the checks of the reference, in its order, from one compiled pass over the inputs
     w_shape_ok = w.shape == (k,)
-    g_min, g_max, a_bad, type_bad, w_bad = _scan_batch(A, g, w if w_shape_ok else np.ones(k), ts_s, tt_s,
+    g_min, g_max, a_bad, type_bad, w_bad = _scan_batch(A, g, w if w_shape_ok else kernel_input(np.ones(k), np.float64),
+                                                       ts_s, tt_s,
                                                        weights is not None and w_shape_ok)
     if g_min < 0:
         raise InvalidInputError("group indices must be non-negative")
@@ -1201,8 +1205,8 @@ def _register_batch_numba(
     if empty_weight:
         raise InvalidInputError("every group needs a positive weight")
     ws, tso, ds, dt, bs, bt = _gather_batch(order, A, w, ts_s, _directions_of(source), _directions_of(target),
-                                            np.ascontiguousarray(source.anchors, dtype=np.float64),
-                                            np.ascontiguousarray(target.anchors, dtype=np.float64))
+                                            kernel_input(source.anchors, np.float64),
+                                            kernel_input(target.anchors, np.float64))
     R = np.empty((G, 3, 3))
     t = np.empty((G, 3))
     S = np.zeros((G, 3))

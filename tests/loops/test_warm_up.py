@@ -54,6 +54,7 @@ def test_after_the_warm_up_a_stored_pair_compiles_or_loads_no_kernel():
     det = LoopDetector()
     assert det.warm_up(points=True) > 0.0
     before = _signatures()
+    scans = []
     for n_poles, n_planes, seed, outliers in ((10, 25, 44, 6), (3, 18, 82, 0)):
         sc = make_scene_pair(n_poles, n_planes, seed=seed, yaw_deg=120.0, translation=(4.0, -2.0, 0.0),
                              n_outliers=outliers)
@@ -61,6 +62,15 @@ def test_after_the_warm_up_a_stored_pair_compiles_or_loads_no_kernel():
         res = verify_candidate(src, tgt, det.matcher, det.config.verification)
         assert res["matcher_valid"] and res["n_agreeing"] >= 6
         quick_check_many(quick_index(src), [quick_index(tgt)])
+        scans.append((src, tgt))
+    # the same scans again, against another candidate and the other way round: their cached
+    # (read-only) arrays reach the kernels now (a query's k candidates, a database scan met by
+    # later queries); session 13 saw such variants load inside downtown-s1 queries
+    (s1, t1), (_, t2) = scans
+    other = make_scene_pair(8, 20, seed=45, yaw_deg=60.0, translation=(3.0, 1.0, 0.0))
+    t3 = decode_landmarks(encode_landmarks(other.target))
+    for x, y in ((s1, t3), (t1, s1), (s1, t1), (s1, t2), (t2, t1)):
+        verify_candidate(x, y, det.matcher, det.config.verification)
     P_t = np.random.default_rng(3).uniform([-25, -25, 0], [25, 25, 5], (1200, 3))
     T_s_t = invert(sc.T_target_source)
     poor = make_scene_pair(3, 5, seed=3, yaw_deg=120.0, translation=(4.0, -2.0, 0.0))
@@ -68,4 +78,19 @@ def test_after_the_warm_up_a_stored_pair_compiles_or_loads_no_kernel():
                              decode_points(encode_points(P_t @ T_s_t[:3, :3].T + T_s_t[:3, 3])))
     b = with_evidence_points(decode_landmarks(encode_landmarks(poor.target)), decode_points(encode_points(P_t)))
     assert verify_candidate(a, b, det.matcher, det.config.verification)["on_points"]
+    assert verify_candidate(b, a, det.matcher, det.config.verification)["on_points"]
     assert _signatures() - before == set()
+
+
+def test_kernel_inputs_are_read_only_views_of_one_dtype():
+    """Cached arrays are read-only and fresh ones are not; the kernels get both as read-only
+    (one numba signature), without a copy where dtype and layout already fit."""
+    from graffmatch.geometry.set_cache import kernel_input
+
+    a = np.arange(12.0).reshape(4, 3)
+    v = kernel_input(a, np.float64)
+    assert not v.flags.writeable and a.flags.writeable and np.shares_memory(v, a)
+    assert np.array_equal(v, a)
+    w = kernel_input(a[:, ::2], np.float32)  # strided and another dtype: a C-contiguous copy
+    assert w.dtype == np.float32 and w.flags.c_contiguous and not w.flags.writeable
+    assert np.array_equal(w, a[:, ::2].astype(np.float32))
