@@ -30,6 +30,13 @@ extracted with the pole-only front end (``poles.LAYERED_POLES``, cached apart). 
 and writes JSON (``--json``).
 
     python bench/verification.py --out /tmp/gm-verify --raw-drives --json bench/results/verification.json
+
+``--evidence scans`` (session 14) does the same for the raw-scan evidence of ``ScanMatcher``
+(``evidence='scans'``): each pair, negatives included, verified on both scans' non-ground voxel
+clouds from the extractor, thresholds chosen by the same rule on the calibration split, reported
+on the test split (the free-space image stays the configured one):
+
+    python bench/verification.py --out /tmp/gm-verify --evidence scans --json bench/results/verification_scans_session14.json
 """
 
 from __future__ import annotations
@@ -57,25 +64,65 @@ from graffmatch.verification.config import VerificationConfig
 ROT_OK, TRANS_OK = 5.0, 1.0
 
 
+#: the evidence hypotheses are scored on (``--evidence``): support (the landmarks' support
+#: points) or scans (the extractor's non-ground voxel cloud of each scan, as ``ScanMatcher``
+#: with ``evidence='scans'``); set by :func:`main`
+EVIDENCE = "support"
+#: each loaded set's scan cloud with ``--evidence scans``, by ``id`` of the set (alive in ``src``)
+SCAN_CLOUDS: dict[int, np.ndarray] = {}
+_EVIDENCE_CLOUDS: dict = {}
+
+
 def extract_all(ds, cfg: LandmarkExtractorConfig, cache: Path, name: str) -> list[LandmarkSet]:
-    """Landmarks of every scan, cached per (dataset, extractor config and code version, scan file) state."""
+    """Landmarks of every scan, cached per (dataset, extractor config and code version, scan file)
+    state; with ``EVIDENCE == 'scans'`` each set's scan cloud, the extractor's voxel cloud of the
+    scan (``LandmarkExtractor.last_cloud.points``, cached next to it), goes to ``SCAN_CLOUDS``."""
     import hashlib
 
     key = hashlib.sha1((cfg.config_hash() + str(ds.scan_path(0).stat().st_mtime_ns)).encode()).hexdigest()[:10]
     cache = cache / f"{name}-{key}"
     cache.mkdir(parents=True, exist_ok=True)
     ex = LandmarkExtractor(cfg)
+    clouds = EVIDENCE == "scans"
     out = []
     for i in range(len(ds)):
         f = cache / f"{name}_{i:06d}.npz"
-        if f.exists():
-            out.append(LandmarkSet.load(f))
+        fc = cache / f"{name}_{i:06d}_cloud.npy"
+        if f.exists() and (not clouds or fc.exists()):
+            ls = LandmarkSet.load(f)
+            if clouds:
+                SCAN_CLOUDS[id(ls)] = np.load(fc)
+            out.append(ls)
             continue
         scan = ds[i]
         ls = ex.extract(scan.points, None)
         ls.save(f, include_points=True)
+        if clouds:
+            c = ex.last_cloud
+            pts = np.zeros((0, 3)) if c is None else c.points
+            np.save(fc, pts)
+            ls = LandmarkSet.load(f)  # as a cached run sees it
+            SCAN_CLOUDS[id(ls)] = np.load(fc)
         out.append(ls)
     return out
+
+
+def scan_evidence_of(src: dict, cfg: VerificationConfig, ds_s: str, j: int, ds_t: str, i: int):
+    """The raw-scan evidence of a pair (``verify.scan_evidence``, as ``ScanMatcher.register``
+    builds it); each scan's cloud is built once and reused (its cell hashes too), as the
+    support points' per-scan cache does."""
+    from graffmatch.verification.evidence import scan_cloud
+    from graffmatch.verification.verify import Evidence, scan_evidence
+
+    cache = _EVIDENCE_CLOUDS
+    for key in ((ds_s, j), (ds_t, i)):
+        if key not in cache:
+            ls = src[key[0]]["lms"][key[1]]
+            cache[key] = scan_cloud(SCAN_CLOUDS[id(ls)], ls, cfg.scan_voxel, cfg.scan_max_points)
+    cs, ct = cache[ds_s, j], cache[ds_t, i]
+    if cs is None or ct is None:  # what scan_evidence falls back to
+        return scan_evidence(src[ds_s]["lms"][j], src[ds_t]["lms"][i], np.zeros((0, 3)), np.zeros((0, 3)), cfg)
+    return Evidence(cs, ct, "scans")
 
 
 def with_poles(cfg: LandmarkExtractorConfig, poles: dict | None) -> LandmarkExtractorConfig:
@@ -186,9 +233,12 @@ def run_pairs(src: dict, pairs: list[dict], cfg: GraffMatchConfig) -> list[dict]
             row.update(structural=False, score=0.0, ratio=1.0, correct=False, t=0.0, message="too few landmarks")
             rows.append(row)
             continue
+        ev = None
+        if EVIDENCE == "scans":
+            ev = scan_evidence_of(src, cfg.verification, p["ds2"], p["j"], p["ds"], p["i"])
         t0 = time.perf_counter()
         try:
-            r = matcher.match(S, T)
+            r = matcher.match(S, T, evidence=ev)
         except InvalidInputError as exc:  # e.g. lines only: a scan with a single pole
             row.update(structural=False, score=0.0, ratio=1.0, correct=False, t=0.0, message=str(exc))
             rows.append(row)
@@ -205,6 +255,7 @@ def run_pairs(src: dict, pairs: list[dict], cfg: GraffMatchConfig) -> list[dict]
         row["n_assoc"] = len(r.associations)
         row["slide"] = float(r.info.get("slide_ratio", 0.0))
         row["conflict"] = float(max(r.info.get("free_space_conflict", (0.0, 0.0))))
+        row["evidence"] = r.info.get("evidence_source")
         row["T"] = None if r.T_target_source is None else np.asarray(r.T_target_source).tolist()
         row["correct"] = False
         if p["ds"] == p["ds2"] and r.T_target_source is not None:  # far pairs too: judged by pose
@@ -230,7 +281,7 @@ def run_both(src: dict, pairs: list[dict]) -> list[dict]:
     def open_cfg(mode: str) -> GraffMatchConfig:
         return GraffMatchConfig(verification=VerificationConfig(
             min_overlap=0.0, max_rival_ratio=1.0, max_conflict=1.0, max_conflict_support_points=1.0,
-            min_landmark_overlap=0.0, wide_search=mode))
+            min_landmark_overlap=0.0, wide_search=mode, scans=None))
 
     rows = run_pairs(src, pairs, open_cfg("never"))
     print("  the wide pass:", flush=True)
@@ -510,6 +561,75 @@ def lines_only_report(rows: list[dict]) -> dict:
     return out
 
 
+def main_scans(a) -> None:
+    """``--evidence scans``: every pair (positives and negatives, both passes) matched through
+    the raw-scan evidence with every threshold open; thresholds chosen on the calibration split
+    by :func:`choose_thresholds` (the same rule as the support points'), at the configured
+    free-space image (recorded by the matcher per pair); reported on the test split."""
+    out = Path(a.out)
+    t0 = time.perf_counter()
+    src = load_sources(out, not a.no_sim, False, json.loads(a.poles) if a.poles else None)
+    print(f"landmarks and scan clouds ready in {time.perf_counter() - t0:.0f} s: "
+          + ", ".join(f"{k} {len(v['lms'])}" for k, v in src.items()), flush=True)
+    pairs = make_pairs(src, a.max_per, a.cross_per)
+    rows = run_both(src, pairs)
+    cal = [r for r in rows if r["split"] == "cal"]
+    test = [r for r in rows if r["split"] == "test"]
+    groups = np.array([r["ds"] if r["ds"] == r["ds2"] else "cross" for r in cal])
+    mo, mr, mc, cal_m = choose_thresholds(cal, groups=groups)
+    coef = fit_confidence(answered(cal, mo, mr, mc))
+    base = VerificationConfig()
+    print(f"\nscan evidence (voxel {base.scan_voxel} m, <= {base.scan_max_points} points): chosen on the "
+          f"calibration split ({len(cal)} pairs): min_overlap={mo}, max_rival_ratio={mr}, max_conflict={mc}; "
+          f"confidence coef={tuple(round(c, 3) for c in coef)}")
+    report: dict = {"evidence": "scans", "scan_voxel": base.scan_voxel, "scan_max_points": base.scan_max_points,
+                    "thresholds": {"min_overlap": mo, "max_rival_ratio": mr, "max_conflict": mc},
+                    "confidence_coef": coef, "calibration": cal_m, "calibration_by_dataset": {},
+                    "test": {}, "test_by_dataset": {}}
+    first_only = [{k: v for k, v in r.items() if k != "wide"} for r in test]
+    for label, (rs, th) in {"chosen": (test, (mo, mr, mc)),
+                            "support-point thresholds": (test, (base.min_overlap, base.max_rival_ratio,
+                                                                base.max_conflict)),
+                            "without free space": (test, (mo, mr, 1.0)),
+                            "first pass only": (first_only, (mo, mr, mc))}.items():
+        report["test"][label] = outcome(rs, *th)
+    for split, rs, key in (("calibration", cal, "calibration_by_dataset"), ("test", test, "test_by_dataset")):
+        v = decide(rs, mo, mr, mc)
+        ans = answered(rs, mo, mr, mc)
+        print(f"\n{split + ' split (scans)':<30}{'pairs':>6}{'pos':>5}{'neg':>5}{'valid':>6}{'prec':>7}"
+              f"{'recall':>7}{'oracle':>7}{'FP neg':>8}")
+        for ds, ds2 in sorted({(r["ds"], r["ds2"]) for r in rs}):
+            idx = [k for k, r in enumerate(rs) if r["ds"] == ds and r["ds2"] == ds2]
+            m = metrics([ans[k] for k in idx], v[idx])
+            name = ds if ds == ds2 else f"{ds} x {ds2}"
+            report[key][name] = m
+            print(f"{name:<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
+                  f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
+        m = metrics(ans, v)
+        print(f"{'ALL':<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
+              f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
+    for label in ("support-point thresholds", "without free space", "first pass only"):
+        m = report["test"][label]
+        print(f"{'ALL (test), ' + label:<40}{m['pairs']:>6}{m['valid']:>6}{m['precision']:>7.3f}"
+              f"{m['recall']:>7.3f}{m['valid_negatives']:>8}")
+    test_answer = answered(test, mo, mr, mc)
+    st = np.array([r["structural"] for r in test_answer])
+    lab = np.array([r["correct"] for r in test_answer])
+    sc = np.array([r["score"] for r in test_answer])
+    report["test_auc_overlap"] = auc(sc[st], lab[st])
+    report["reliability_test"] = reliability(test_answer, coef, decide(test, mo, mr, mc))
+    times = np.array([r["t"] + r["wide"].get("t", 0.0) * (not ok) for r, ok in
+                      zip(rows, decide([{k: x for k, x in r.items() if k != "wide"} for r in rows], mo, mr, mc),
+                          strict=True) if r.get("t")])
+    report["match_ms"] = {"median": float(np.median(times) * 1e3), "p95": float(np.percentile(times, 95) * 1e3)}
+    print(f"\nAUC of overlap (test): {report['test_auc_overlap']:.3f}; match() with scan evidence: median "
+          f"{report['match_ms']['median']:.1f} ms, p95 {report['match_ms']['p95']:.1f} ms")
+    if a.json:
+        Path(a.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.json).write_text(json.dumps({**report, "rows": rows}, indent=1, default=float))
+        print(f"wrote {a.json}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="/tmp/gm-verify")
@@ -524,7 +644,16 @@ def main() -> None:
                     help="JSON overrides of every extractor's pole settings (front-end experiments)")
     ap.add_argument("--lines-only", action="store_true",
                     help="only the lines-only pass (rows to OUT/lines_only_rows.json; --json is not written)")
+    ap.add_argument("--evidence", choices=("support", "scans"), default="support",
+                    help="scans: verify every pair on the scans' non-ground voxel clouds (ScanMatcher's "
+                         "evidence='scans') and choose its thresholds; the free-space image is the "
+                         "configured one, and the lines-only, raw-drive and support-image passes are skipped")
     a = ap.parse_args()
+    global EVIDENCE
+    EVIDENCE = a.evidence
+    if EVIDENCE == "scans":
+        main_scans(a)
+        return
     out = Path(a.out)
     t0 = time.perf_counter()
     poles = json.loads(a.poles) if a.poles else None

@@ -252,7 +252,7 @@ def _verified_result(source, target, graph, sol, cfg: GraffMatchConfig, timings,
     """Hypotheses from the graph, registered, scored and decided (``graffmatch.verification``).
     An invalid first pass is searched again wider (``VerificationConfig.wide_search``), whose
     result is returned; a valid one is returned as it is."""
-    vcfg = cfg.verification.for_landmark_types(cfg.landmark_types)
+    vcfg = cfg.verification.for_evidence(cfg.landmark_types, "support" if evidence is None else evidence.kind)
     W = graph.weights.tocsr()
     vt: dict[str, float] = {}
     res = _verified_once(source, target, graph, W, sol, cfg, vcfg, vt, dict(common, info=dict(common["info"])),
@@ -296,7 +296,8 @@ def _verified_once(source, target, graph, W, sol, cfg: GraffMatchConfig, vcfg, v
                   weights=np.ones(best.n_associations))
     common["info"].update(origin=best.origin, rival_ratio=verdict.rival_ratio,
                           score_parts=best.score_parts, clipper_selected=len(sol.selected))
-    for key in ("free_space_conflict", "free_space_image", "search", "wide_differs", "verified_overlap"):
+    for key in ("free_space_conflict", "free_space_image", "search", "wide_differs", "verified_overlap",
+                "evidence_source"):
         if key in best.info:
             common["info"][key] = best.info[key]
     if "slide_ratio" in best.info:

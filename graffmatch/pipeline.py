@@ -5,8 +5,10 @@ matcher once. It is the single code path for :func:`register_scans`, ``graffmatc
 the demo, the evaluation's GraffMatch methods and ``graffmatch loops``; its config is a nested
 pydantic model, written next to every result.
 
-With raw scans at hand, the winner is refined by ICP on the voxel-downsampled non-ground scans
-(or on the matched landmarks' points). ``register`` hands ICP the extractor's own voxel cloud
+With raw scans at hand, ``evidence='scans'`` verifies hypotheses on the scans' non-ground voxel
+clouds (the extractor's ``last_cloud``) instead of the landmarks' support points, at thresholds
+chosen for that evidence (``VerificationConfig.scans``). The winner is refined by ICP on the
+voxel-downsampled non-ground scans (or on the matched landmarks' points). ``register`` hands ICP the extractor's own voxel cloud
 of each scan with its normals (``LandmarkExtractor.last_cloud``), so nothing is voxelised or
 normal-estimated twice (``refine`` called with raw scans only re-voxelises them). A refinement
 that moves the verified answer by more than a rival would differ (``verification.rival_deg`` /
@@ -31,6 +33,7 @@ from graffmatch.lidar.extractor import LandmarkExtractor, LandmarkExtractorConfi
 from graffmatch.lidar.voxels import VoxelCloud
 from graffmatch.matcher import GraffMatchConfig, GraffMatcher, MatchResult
 from graffmatch.verification.evidence import voxel_downsample
+from graffmatch.verification.verify import Evidence, scan_evidence
 
 
 class RefinementConfig(BaseModel):
@@ -72,6 +75,13 @@ class ScanMatcherConfig(BaseModel):
     extractor: LandmarkExtractorConfig = Field(default_factory=LandmarkExtractorConfig)
     matcher: GraffMatchConfig = Field(default_factory=GraffMatchConfig)
     refinement: RefinementConfig = Field(default_factory=RefinementConfig)
+    evidence: Literal["support", "scans"] = Field(
+        "support",
+        description="what register() verifies hypotheses on: support (the landmarks' support points, as "
+        "match() on landmark sets) or scans (the scans' non-ground voxel clouds from the extractor, "
+        "matcher.verification.scan_voxel / scan_max_points, decided at verification.scans' thresholds; "
+        "a lines-only matcher keeps the support points, whose thresholds it was calibrated on)",
+    )
 
 
 @dataclass
@@ -138,9 +148,10 @@ class ScanMatcher:
         """Landmarks of one scan (with support points, which verification uses)."""
         return self.extractor.extract(points, labels)
 
-    def match(self, source: LandmarkSet, target: LandmarkSet) -> MatchResult:
-        """Verified match of two landmark sets (e.g. loaded from compact files)."""
-        return self.matcher.match(source, target)
+    def match(self, source: LandmarkSet, target: LandmarkSet, evidence: Evidence | None = None) -> MatchResult:
+        """Verified match of two landmark sets (e.g. loaded from compact files); ``evidence``:
+        what to verify on instead of their support points (``register`` passes the scans')."""
+        return self.matcher.match(source, target, evidence=evidence)
 
     def refine(
         self, result: MatchResult, source: LandmarkSet, target: LandmarkSet,
@@ -203,6 +214,13 @@ class ScanMatcher:
                               f"(> {vcfg.rival_deg} deg / {vcfg.rival_m} m): landmarks and points disagree")
         return result
 
+    def _scan_points(self, points: ArrayLike, landmarks: LandmarkSet, cloud: VoxelCloud | None) -> NDArray[np.float64]:
+        """A scan's non-ground points for raw-scan evidence: the extractor's voxel cloud (no second
+        pass over the scan), else the scan without its ground plane."""
+        if cloud is not None and len(cloud) >= 10:
+            return cloud.points
+        return non_ground_points(points, landmarks, self.config.refinement.ground_clearance)
+
     def register(
         self, source_points: ArrayLike, target_points: ArrayLike,
         source_labels: ArrayLike | None = None, target_labels: ArrayLike | None = None,
@@ -220,8 +238,15 @@ class ScanMatcher:
                 raise InvalidInputError(
                     f"{name} scan gave {len(ls)} landmark(s); at least 2 are needed to match"
                 )
-        result = self.match(src, tgt)
-        result.timings = {"extraction": t_extract, **result.timings}
+        evidence, t_ev = None, {}
+        mcfg = self.config.matcher
+        if self.config.evidence == "scans" and mcfg.verification.enabled and set(mcfg.landmark_types) != {"line"}:
+            t1 = time.perf_counter()
+            evidence = scan_evidence(src, tgt, self._scan_points(source_points, src, src_cloud),
+                                     self._scan_points(target_points, tgt, tgt_cloud), mcfg.verification)
+            t_ev = {"scan_evidence": time.perf_counter() - t1}
+        result = self.match(src, tgt, evidence)
+        result.timings = {"extraction": t_extract, **t_ev, **result.timings}
         self.refine(result, src, tgt, source_points, target_points, src_cloud, tgt_cloud)
         result.timings["total"] = sum(v for k, v in result.timings.items() if k != "total")
         return ScanRegistration(result, src, tgt)

@@ -26,6 +26,16 @@ class DecisionThresholds(BaseModel):
     max_slide_ratio: float | None = Field(
         None, gt=0, description="invalid above this slide ratio (see VerificationConfig.max_slide_ratio)"
     )
+    confidence_coef: tuple[float, float, float, float] | None = Field(
+        None, description="the confidence's logistic coefficients for this mode (None: VerificationConfig's)"
+    )
+
+    def thresholds(self) -> dict:
+        """The fields a :class:`VerificationConfig` takes over (the confidence only when set)."""
+        d = self.model_dump()
+        if d["confidence_coef"] is None:
+            del d["confidence_coef"]
+        return d
 
 
 class VerificationConfig(BaseModel):
@@ -123,6 +133,11 @@ class VerificationConfig(BaseModel):
     inlier_m: float = Field(0.3, gt=0, description="a point is explained within this distance [m]")
     landmark_deg: float = Field(5.0, gt=0, description="landmark-level evidence: angle tolerance [deg]")
     landmark_m: float = Field(0.4, gt=0, description="landmark-level evidence: offset tolerance [m]")
+    scan_voxel: float = Field(
+        0.6, gt=0, description="raw-scan evidence (ScanMatcher with evidence='scans'): voxel size of the "
+        "extractor's non-ground voxel cloud used as evidence [m]",
+    )
+    scan_max_points: int = Field(2000, ge=10, description="... most points per scan (even stride)")
     # decision
     min_overlap: float = Field(
         0.1875, ge=0, le=1,
@@ -197,8 +212,23 @@ class VerificationConfig(BaseModel):
         "thresholds for every mode)",
     )
 
+    scans: DecisionThresholds | None = Field(
+        None,
+        description="replace min_overlap / max_rival_ratio / max_conflict (and the confidence) when the "
+        "evidence is the raw scans' voxel clouds (ScanMatcher with evidence='scans'); chosen on the "
+        "calibration split of bench/verification.py --evidence scans (None: the support points' thresholds)",
+    )
+
     def for_landmark_types(self, types: list[str] | tuple[str, ...]) -> VerificationConfig:
         """The configuration the decision uses for a matcher restricted to ``types``."""
         if self.lines_only is None or set(types) != {"line"}:
             return self
-        return self.model_copy(update=self.lines_only.model_dump())
+        return self.model_copy(update=self.lines_only.thresholds())
+
+    def for_evidence(self, types: list[str] | tuple[str, ...], kind: str) -> VerificationConfig:
+        """The configuration the decision uses for ``types`` and an evidence of ``kind``
+        ('support' or 'scans'): the raw scans' own thresholds replace the support points' ones
+        (a denser, larger cloud explains other shares); lines-only keeps its own."""
+        if kind == "scans" and self.scans is not None and set(types) != {"line"}:
+            return self.model_copy(update=self.scans.thresholds())
+        return self.for_landmark_types(types)

@@ -32,6 +32,7 @@ from graffmatch.verification.evidence import (
     point_overlap,
     point_overlaps,
     prepared_support,
+    scan_cloud,
 )
 from graffmatch.verification.free_space import conflict_fraction
 from graffmatch.verification.hypotheses import (
@@ -52,10 +53,15 @@ from graffmatch.verification.translation_vote import vote_translations
 
 @dataclass
 class Evidence:
-    """What hypotheses are scored against: support clouds of both scans, or none."""
+    """What hypotheses are scored against: support clouds of both scans, or none.
+
+    ``kind`` says where the points come from ('support': the landmarks' support points;
+    'scans': the raw scans' non-ground voxel clouds), so the decision uses the thresholds
+    chosen for that evidence (``VerificationConfig.for_evidence``)."""
 
     source: SupportCloud | None
     target: SupportCloud | None
+    kind: str = "support"
 
     @property
     def has_points(self) -> bool:
@@ -66,6 +72,17 @@ def evidence_for(source: LandmarkSet, target: LandmarkSet, cfg: VerificationConf
     """Support clouds of both sets, from the per-scan cache (``evidence.evidence_cache``)."""
     return Evidence(prepared_support(source, cfg.voxel, cfg.max_points),
                     prepared_support(target, cfg.voxel, cfg.max_points))
+
+
+def scan_evidence(source: LandmarkSet, target: LandmarkSet, source_points: NDArray, target_points: NDArray,
+                  cfg: VerificationConfig) -> Evidence:
+    """Evidence from both scans' non-ground points (``evidence.scan_cloud`` at ``scan_voxel`` /
+    ``scan_max_points``); the support points' evidence when either scan leaves too few."""
+    s = scan_cloud(source_points, source, cfg.scan_voxel, cfg.scan_max_points)
+    t = scan_cloud(target_points, target, cfg.scan_voxel, cfg.scan_max_points)
+    if s is None or t is None:
+        return evidence_for(source, target, cfg)
+    return Evidence(s, t, "scans")
 
 
 def _register(
@@ -530,6 +547,7 @@ def verify_graph(
                      cfg.max_rival_ratio if ev.has_points else cfg.max_rival_ratio_landmarks)
     if verdict.best is not None:
         verdict.best.info["evidence"] = "points" if ev.has_points else "landmarks"
+        verdict.best.info["evidence_source"] = ev.kind if ev.has_points else "landmarks"
     if not ev.has_points and verdict.best is not None:
         n_ok = verdict.best.info.get("landmarks_explained", 0)
         if n_ok < cfg.min_landmarks_explained:
