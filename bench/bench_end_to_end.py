@@ -41,8 +41,9 @@ from graffmatch.pipeline import RefinementConfig, ScanMatcher, ScanMatcherConfig
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
-def scan_matcher(legacy: bool) -> ScanMatcher:
-    """Default ScanMatcher with ICP; ``legacy``: the pre-issue-14 detector and ICP settings."""
+def scan_matcher(legacy: bool, evidence: str | None = None) -> ScanMatcher:
+    """Default ScanMatcher with ICP; ``legacy``: the pre-issue-14 detector and ICP settings;
+    ``evidence``: what verification scores on ('support' or 'scans'; None: the default)."""
     fields = RefinementConfig.model_fields
     ref = {"method": "icp"}
     ext = None
@@ -52,7 +53,8 @@ def scan_matcher(legacy: bool) -> ScanMatcher:
             if k in fields:
                 ref[k] = v
         ext = {"planes": {"detector": "open3d"}}
-    cfg = ScanMatcherConfig.model_validate({"refinement": ref, **({"extractor": ext} if ext else {})})
+    cfg = ScanMatcherConfig.model_validate({"refinement": ref, **({"extractor": ext} if ext else {}),
+                                            **({"evidence": evidence} if evidence else {})})
     return ScanMatcher(cfg)
 
 
@@ -118,6 +120,9 @@ def main() -> None:
     ap.add_argument("--kiss-repeats", type=int, default=2)
     ap.add_argument("--no-kiss", action="store_true")
     ap.add_argument("--legacy", action="store_true", help="also time the pre-issue-14 settings")
+    ap.add_argument("--evidence", nargs="+", default=None, choices=("support", "scans"),
+                    help="time these evidences of ScanMatcherConfig.evidence in the same run (session 14); "
+                         "default: the configured one only")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     folder = a.data / "kitti00_first6"
@@ -133,6 +138,9 @@ def main() -> None:
         truth[f"{b}->{t}"] = (f"{b}->{t}", T_gt, T_icp)
     load0 = os.getloadavg()[0]
     methods = {"GraffMatch (ScanMatcher + ICP)": (scan_matcher(False), a.repeats)}
+    if a.evidence:
+        methods = {f"GraffMatch (ScanMatcher + ICP), {e} evidence": (scan_matcher(False, e), a.repeats)
+                   for e in a.evidence}
     if a.legacy:
         methods["GraffMatch, pre-issue-14 settings"] = (scan_matcher(True), a.repeats)
     rows = []

@@ -31,10 +31,11 @@ and writes JSON (``--json``).
 
     python bench/verification.py --out /tmp/gm-verify --raw-drives --json bench/results/verification.json
 
-``--evidence scans`` (session 14) does the same for the raw-scan evidence of ``ScanMatcher``
-(``evidence='scans'``): each pair, negatives included, verified on both scans' non-ground voxel
-clouds from the extractor, thresholds chosen by the same rule on the calibration split, reported
-on the test split (the free-space image stays the configured one):
+``--evidence scans`` (session 14) does the same for the raw-scan evidence of ``ScanMatcher``:
+each pair, negatives included, verified on both scans' non-ground voxel clouds from the
+extractor and again on the support points; the raw-scan thresholds chosen by the same rule on
+the calibration split, for scans alone and for ``evidence='support_then_scans'`` (the support
+points' answer when valid, else the scans'), reported on the test split (``main_scans``):
 
     python bench/verification.py --out /tmp/gm-verify --evidence scans --json bench/results/verification_scans_session14.json
 """
@@ -397,11 +398,16 @@ def free_space_conflicts(src: dict, rows: list[dict], variant: tuple, use_scan_r
 
 def choose_thresholds(cal: list[dict], conflicts: np.ndarray | None = None, groups: np.ndarray | None = None,
                       max_neg_fpr: float = 0.005, loose_conflict: bool = True,
-                      wide_conflicts: np.ndarray | None = None) -> tuple[float, float, float, dict]:
+                      wide_conflicts: np.ndarray | None = None,
+                      prior: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float, float, dict]:
     """Most calibration recall with precision >= 99.5 % (in each of ``groups`` when given) and
     <= ``max_neg_fpr`` valid-and-wrong negatives (vectorised over the grid); ties: the stricter
     overlap / ratio, the looser conflict (``loose_conflict``) or the stricter. Rows with a
-    ``wide`` pass are decided as the matcher does: the first pass when valid, else the wide one."""
+    ``wide`` pass are decided as the matcher does: the first pass when valid, else the wide one.
+    ``prior`` (valid, correct per row): a decision taken before these rows' (the support points'
+    at their thresholds); a row counts as valid when it is valid or the prior is, with the
+    prior's answer when the prior is valid (``--evidence support_then_scans``). The returned
+    metrics are then those of the rows alone."""
     def arrays(rs: list[dict], C: np.ndarray | None) -> tuple:
         return (np.array([r["score"] for r in rs]), np.array([r["ratio"] for r in rs]),
                 np.array([r["structural"] for r in rs], bool), np.array([r["correct"] for r in rs], bool),
@@ -429,6 +435,9 @@ def choose_thresholds(cal: list[dict], conflicts: np.ndarray | None = None, grou
                 if wide:
                     cor = np.where(v, COR, CORw)
                     v = v | (w2 & (Qw <= mr))
+                if prior is not None:
+                    cor = np.where(prior[0], prior[1], cor)
+                    v = v | prior[0]
                 nv = v.sum()
                 tp = (v & cor).sum()
                 if (nv and tp / nv < 0.995) or (v & ~POS & ~cor).sum() / n_neg > max_neg_fpr:
@@ -561,72 +570,96 @@ def lines_only_report(rows: list[dict]) -> dict:
     return out
 
 
+def fallback(rows_s: list[dict], th_s: tuple, rows_c: list[dict], th_c: tuple) -> tuple[list[dict], np.ndarray]:
+    """``ScanMatcher``'s ``evidence='support_then_scans'``: the support points' answer when it is
+    valid at ``th_s``, else the raw scans' at ``th_c``: (answered rows, valid)."""
+    vs, vc = decide(rows_s, *th_s), decide(rows_c, *th_c)
+    a_s, a_c = answered(rows_s, *th_s), answered(rows_c, *th_c)
+    return [x if ok else y for x, y, ok in zip(a_s, a_c, vs, strict=True)], vs | vc
+
+
+def print_table(title: str, rows: list[dict], answers: list[dict], valid: np.ndarray, out: dict) -> None:
+    """Metrics per dataset (pair of datasets for negatives) and over all, printed and kept in ``out``."""
+    print(f"\n{title:<30}{'pairs':>6}{'pos':>5}{'neg':>5}{'valid':>6}{'prec':>7}{'recall':>7}{'oracle':>7}{'FP neg':>8}")
+    for ds, ds2 in [*sorted({(r["ds"], r["ds2"]) for r in rows}), ("ALL", "ALL")]:
+        idx = [k for k, r in enumerate(rows) if ds == "ALL" or (r["ds"] == ds and r["ds2"] == ds2)]
+        m = metrics([answers[k] for k in idx], valid[idx])
+        name = ds if ds == ds2 else f"{ds} x {ds2}"
+        out[name] = m
+        print(f"{name:<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
+              f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
+
+
 def main_scans(a) -> None:
-    """``--evidence scans``: every pair (positives and negatives, both passes) matched through
-    the raw-scan evidence with every threshold open; thresholds chosen on the calibration split
-    by :func:`choose_thresholds` (the same rule as the support points'), at the configured
-    free-space image (recorded by the matcher per pair); reported on the test split."""
+    """``--evidence scans``: every pair (positives and negatives, both passes) matched twice with
+    every threshold open, on the support points and through the raw-scan evidence
+    (``scan_evidence_of``). Thresholds of the raw-scan evidence chosen on the calibration split by
+    :func:`choose_thresholds` (the same rule as the support points'), for two uses: *scans*
+    (instead of the support points) and *support_then_scans* (the support points' answer at the
+    configured thresholds when valid, else the scans'; ``ScanMatcherConfig.evidence``); the
+    free-space image is the configured one (recorded by the matcher per pair). Reported on the
+    test split next to the support points' own decision at the configured thresholds."""
+    global EVIDENCE
     out = Path(a.out)
     t0 = time.perf_counter()
     src = load_sources(out, not a.no_sim, False, json.loads(a.poles) if a.poles else None)
     print(f"landmarks and scan clouds ready in {time.perf_counter() - t0:.0f} s: "
           + ", ".join(f"{k} {len(v['lms'])}" for k, v in src.items()), flush=True)
     pairs = make_pairs(src, a.max_per, a.cross_per)
-    rows = run_both(src, pairs)
-    cal = [r for r in rows if r["split"] == "cal"]
-    test = [r for r in rows if r["split"] == "test"]
-    groups = np.array([r["ds"] if r["ds"] == r["ds2"] else "cross" for r in cal])
-    mo, mr, mc, cal_m = choose_thresholds(cal, groups=groups)
-    coef = fit_confidence(answered(cal, mo, mr, mc))
+    rows_c = run_both(src, pairs)  # EVIDENCE == "scans"
+    EVIDENCE = "support"
+    print("  support points:", flush=True)
+    rows_s = run_both(src, pairs)
+    EVIDENCE = "scans"
     base = VerificationConfig()
-    print(f"\nscan evidence (voxel {base.scan_voxel} m, <= {base.scan_max_points} points): chosen on the "
-          f"calibration split ({len(cal)} pairs): min_overlap={mo}, max_rival_ratio={mr}, max_conflict={mc}; "
-          f"confidence coef={tuple(round(c, 3) for c in coef)}")
+    th_s = (base.min_overlap, base.max_rival_ratio, base.max_conflict)
+    cal_c = [r for r in rows_c if r["split"] == "cal"]
+    cal_s = [r for r in rows_s if r["split"] == "cal"]
+    groups = np.array([r["ds"] if r["ds"] == r["ds2"] else "cross" for r in cal_c])
     report: dict = {"evidence": "scans", "scan_voxel": base.scan_voxel, "scan_max_points": base.scan_max_points,
-                    "thresholds": {"min_overlap": mo, "max_rival_ratio": mr, "max_conflict": mc},
-                    "confidence_coef": coef, "calibration": cal_m, "calibration_by_dataset": {},
-                    "test": {}, "test_by_dataset": {}}
-    first_only = [{k: v for k, v in r.items() if k != "wide"} for r in test]
-    for label, (rs, th) in {"chosen": (test, (mo, mr, mc)),
-                            "support-point thresholds": (test, (base.min_overlap, base.max_rival_ratio,
-                                                                base.max_conflict)),
-                            "without free space": (test, (mo, mr, 1.0)),
-                            "first pass only": (first_only, (mo, mr, mc))}.items():
-        report["test"][label] = outcome(rs, *th)
-    for split, rs, key in (("calibration", cal, "calibration_by_dataset"), ("test", test, "test_by_dataset")):
-        v = decide(rs, mo, mr, mc)
-        ans = answered(rs, mo, mr, mc)
-        print(f"\n{split + ' split (scans)':<30}{'pairs':>6}{'pos':>5}{'neg':>5}{'valid':>6}{'prec':>7}"
-              f"{'recall':>7}{'oracle':>7}{'FP neg':>8}")
-        for ds, ds2 in sorted({(r["ds"], r["ds2"]) for r in rs}):
-            idx = [k for k, r in enumerate(rs) if r["ds"] == ds and r["ds2"] == ds2]
-            m = metrics([ans[k] for k in idx], v[idx])
-            name = ds if ds == ds2 else f"{ds} x {ds2}"
-            report[key][name] = m
-            print(f"{name:<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
-                  f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
-        m = metrics(ans, v)
-        print(f"{'ALL':<30}{m['pairs']:>6}{m['positives']:>5}{m['negatives']:>5}{m['valid']:>6}"
-              f"{m['precision']:>7.3f}{m['recall']:>7.3f}{m['oracle_recall']:>7.3f}{m['valid_negatives']:>8}")
-    for label in ("support-point thresholds", "without free space", "first pass only"):
-        m = report["test"][label]
-        print(f"{'ALL (test), ' + label:<40}{m['pairs']:>6}{m['valid']:>6}{m['precision']:>7.3f}"
-              f"{m['recall']:>7.3f}{m['valid_negatives']:>8}")
-    test_answer = answered(test, mo, mr, mc)
-    st = np.array([r["structural"] for r in test_answer])
-    lab = np.array([r["correct"] for r in test_answer])
-    sc = np.array([r["score"] for r in test_answer])
-    report["test_auc_overlap"] = auc(sc[st], lab[st])
-    report["reliability_test"] = reliability(test_answer, coef, decide(test, mo, mr, mc))
-    times = np.array([r["t"] + r["wide"].get("t", 0.0) * (not ok) for r, ok in
-                      zip(rows, decide([{k: x for k, x in r.items() if k != "wide"} for r in rows], mo, mr, mc),
-                          strict=True) if r.get("t")])
-    report["match_ms"] = {"median": float(np.median(times) * 1e3), "p95": float(np.percentile(times, 95) * 1e3)}
-    print(f"\nAUC of overlap (test): {report['test_auc_overlap']:.3f}; match() with scan evidence: median "
-          f"{report['match_ms']['median']:.1f} ms, p95 {report['match_ms']['p95']:.1f} ms")
+                    "support_thresholds": dict(zip(("min_overlap", "max_rival_ratio", "max_conflict"), th_s,
+                                                   strict=True)),
+                    "calibration": {}, "test": {}}
+    th_alone = choose_thresholds(cal_c, groups=groups)[:3]
+    prior = (decide(cal_s, *th_s), np.array([r["correct"] for r in answered(cal_s, *th_s)], bool))
+    th_fb = choose_thresholds(cal_c, groups=groups, prior=prior)[:3]
+    # the fallback's confidence: fitted on the calibration pairs it decides (support invalid)
+    coef_fb = fit_confidence([r for r, p in zip(answered(cal_c, *th_fb), prior[0], strict=True) if not p])
+    coef_alone = fit_confidence(answered(cal_c, *th_alone))
+    for name, th, coef in (("scans", th_alone, coef_alone), ("support_then_scans", th_fb, coef_fb)):
+        report[f"thresholds_{name}"] = {"min_overlap": th[0], "max_rival_ratio": th[1], "max_conflict": th[2],
+                                        "confidence_coef": coef}
+        print(f"raw-scan evidence (voxel {base.scan_voxel} m, <= {base.scan_max_points} points), {name}: chosen on "
+              f"the calibration split ({len(cal_c)} pairs): min_overlap={th[0]}, max_rival_ratio={th[1]}, "
+              f"max_conflict={th[2]}; confidence coef={tuple(round(c, 3) for c in coef)}")
+    for split in ("cal", "test"):
+        rs = [r for r in rows_s if r["split"] == split]
+        rc = [r for r in rows_c if r["split"] == split]
+        label = "calibration" if split == "cal" else "test"
+        for name, (ans, v) in {"support": (answered(rs, *th_s), decide(rs, *th_s)),
+                               "scans": (answered(rc, *th_alone), decide(rc, *th_alone)),
+                               "support_then_scans": fallback(rs, th_s, rc, th_fb)}.items():
+            print_table(f"{label}: {name}", rc, ans, v, report[label].setdefault(name, {}))
+    test_c = [r for r in rows_c if r["split"] == "test"]
+    first_only = [{k: v for k, v in r.items() if k != "wide"} for r in test_c]
+    report["test_scans_variants"] = {
+        "support-point thresholds": outcome(test_c, *th_s),
+        "without free space": outcome(test_c, th_alone[0], th_alone[1], 1.0),
+        "first pass only": outcome(first_only, *th_alone)}
+    ta = answered(test_c, *th_alone)
+    st = np.array([r["structural"] for r in ta])
+    report["test_auc_overlap_scans"] = auc(np.array([r["score"] for r in ta])[st],
+                                           np.array([r["correct"] for r in ta], bool)[st])
+    for key, rows in (("scans", rows_c), ("support", rows_s)):
+        t = np.array([r["t"] for r in rows if r.get("t")])
+        report[f"match_ms_first_pass_{key}"] = {"median": float(np.median(t) * 1e3),
+                                                "p95": float(np.percentile(t, 95) * 1e3)}
+    print(f"\nmatch() first pass: scans median {report['match_ms_first_pass_scans']['median']:.1f} ms, support "
+          f"median {report['match_ms_first_pass_support']['median']:.1f} ms (niced, shared host)")
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(a.json).write_text(json.dumps({**report, "rows": rows}, indent=1, default=float))
+        Path(a.json).write_text(json.dumps({**report, "rows_scans": rows_c, "rows_support": rows_s}, indent=1,
+                                           default=float))
         print(f"wrote {a.json}")
 
 
