@@ -127,6 +127,9 @@ class LoadedInput:
     labels_path: Path | None = None
     timings: dict[str, float] | None = None
     origin: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    #: the extractor's non-ground voxel cloud of a scan (``LandmarkExtractor.last_cloud``): the
+    #: raw-scan evidence of ``ScanMatcher.match_scans``
+    cloud: Any = None
 
 
 class LazyExtractor:
@@ -174,7 +177,7 @@ def load_input(
         ls = ex.extract(scan.points, scan.labels)
         timings = dict(ex.last_timings)
         timings.setdefault("total", time.perf_counter() - t0)
-        loaded = LoadedInput(path, "scan", ls, scan.points, label_path, timings, scan.origin)
+        loaded = LoadedInput(path, "scan", ls, scan.points, label_path, timings, scan.origin, ex.last_cloud)
     if len(loaded.landmarks) < MIN_LANDMARKS:
         raise InvalidInputError(
             f"{path}: {len(loaded.landmarks)} landmark(s) ({counts_text(loaded.landmarks)}); "

@@ -261,7 +261,8 @@ def register(
             ),
         ))
         with stage(progress, task, "matching and verifying"):
-            result = scan_matcher.match(src.landmarks, tgt.landmarks)
+            result = scan_matcher.match_scans(src.landmarks, tgt.landmarks, src.points, tgt.points,
+                                              src.cloud, tgt.cloud)
         T_matcher = None if result.T_target_source is None else result.T_target_source.copy()
         refine_info = None
         if refine == RefineChoice.icp and T_matcher is not None:

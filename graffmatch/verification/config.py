@@ -13,6 +13,15 @@ from pydantic import BaseModel, ConfigDict, Field
 #: test precision 1.000 with no valid negative (session 7 rows)
 LINES_ONLY = (0.2, 0.875, 0.18, 0.85)
 
+#: raw-scan evidence (min_overlap, max_rival_ratio, max_conflict) and its confidence coefficients, for
+#: ScanMatcher's evidence='support_then_scans' (decided only where the support points gave no valid
+#: answer): chosen on the calibration split of bench/verification.py --evidence scans by the support
+#: points' rule (bench/results/verification_scans_session14.json; docs/verification.md, Session 14).
+#: Calibration recall is the same for any min_overlap in 0.05-0.125 (the rule's tie-break takes the
+#: lowest); the rival ratio and the free-space conflict do the separating
+SCANS = (0.05, 0.775, 0.08)
+SCANS_CONFIDENCE = (-4.504, 29.926, 12.028, -46.712)
+
 
 class DecisionThresholds(BaseModel):
     """The decision's thresholds for one matching mode (what ``VerificationConfig`` holds for
@@ -134,7 +143,7 @@ class VerificationConfig(BaseModel):
     landmark_deg: float = Field(5.0, gt=0, description="landmark-level evidence: angle tolerance [deg]")
     landmark_m: float = Field(0.4, gt=0, description="landmark-level evidence: offset tolerance [m]")
     scan_voxel: float = Field(
-        0.6, gt=0, description="raw-scan evidence (ScanMatcher with evidence='scans'): voxel size of the "
+        0.6, gt=0, description="raw-scan evidence (ScanMatcher's evidence='support_then_scans'): voxel size of the "
         "extractor's non-ground voxel cloud used as evidence [m]",
     )
     scan_max_points: int = Field(2000, ge=10, description="... most points per scan (even stride)")
@@ -213,9 +222,10 @@ class VerificationConfig(BaseModel):
     )
 
     scans: DecisionThresholds | None = Field(
-        None,
+        default_factory=lambda: DecisionThresholds(
+            min_overlap=SCANS[0], max_rival_ratio=SCANS[1], max_conflict=SCANS[2], confidence_coef=SCANS_CONFIDENCE),
         description="replace min_overlap / max_rival_ratio / max_conflict (and the confidence) when the "
-        "evidence is the raw scans' voxel clouds (ScanMatcher with evidence='scans'); chosen on the "
+        "evidence is the raw scans' voxel clouds (ScanMatcher's evidence='support_then_scans'); chosen on the "
         "calibration split of bench/verification.py --evidence scans (None: the support points' thresholds)",
     )
 

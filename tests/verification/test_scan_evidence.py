@@ -1,68 +1,99 @@
-"""Raw-scan evidence (``ScanMatcherConfig.evidence='scans'``): real KITTI / courtyard scans
-verified on the extractor's non-ground voxel clouds; skips without ../shared/data."""
+"""Raw-scan evidence: real KITTI / courtyard scans verified on the extractor's non-ground voxel
+clouds (``verify.scan_evidence``, ``ScanMatcherConfig.evidence='support_then_scans'``); skips
+without ../shared/data."""
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 import pytest
 
 from graffmatch.datasets.folder import KittiFolder
+from graffmatch.evaluation.suites import suite_config
 from graffmatch.geometry.transforms import invert, transform_errors
 from graffmatch.pipeline import RefinementConfig, ScanMatcher, ScanMatcherConfig
 from graffmatch.verification.config import VerificationConfig
+from graffmatch.verification.evidence import prepared_support
+from graffmatch.verification.verify import scan_evidence
 
 
 @pytest.fixture(scope="module")
 def scans(shared_data):
-    kitti = KittiFolder(shared_data / "kitti00_first6")
     court = shared_data / "balm_courtyard"
     if not court.is_dir():
         pytest.skip(f"no courtyard scans under {court}")
-    return kitti, KittiFolder(court)
+    return KittiFolder(shared_data / "kitti00_first6"), KittiFolder(court)
 
 
-def _matcher(evidence: str) -> ScanMatcher:
-    return ScanMatcher(ScanMatcherConfig(evidence=evidence, refinement=RefinementConfig(method="icp")))
+def _matcher(evidence: str, extractor=None) -> ScanMatcher:
+    cfg = ScanMatcherConfig(evidence=evidence, refinement=RefinementConfig(method="icp"))
+    if extractor is not None:
+        cfg = cfg.model_copy(update={"extractor": extractor})
+    return ScanMatcher(cfg)
 
 
 def test_kitti_pair_valid_on_scan_evidence(scans) -> None:
-    """KITTI 0 <- 5 (4.3 m): valid on the scans' clouds, at the same ICP optimum as the support
-    points' path, and within the official pose's own disagreement with the scans (~0.7 m)."""
+    """KITTI 0 <- 5 (4.3 m) verified on the scans' clouds alone: valid, decided at the scans'
+    thresholds, and within a degree and a metre of the official pose (itself ~0.7 m from the
+    scans, ../shared/data/README.md) and 0.2 deg / 10 cm of the support points' answer."""
     kitti, _ = scans
-    src, tgt = kitti[5].points, kitti[0].points
-    a = _matcher("scans").register(src, tgt)
-    b = _matcher("support").register(src, tgt)
+    sm = _matcher("support")
+    src = sm.extract(kitti[5].points)
+    cs = sm.extractor.last_cloud
+    tgt = sm.extract(kitti[0].points)
+    ct = sm.extractor.last_cloud
+    ev = scan_evidence(src, tgt, cs.points, ct.points, sm.config.matcher.verification)
+    assert ev.kind == "scans" and len(ev.source) > len(prepared_support(src))  # more than the support
+    a, b = sm.match(src, tgt, ev), sm.match(src, tgt)
     assert a.valid, a.message
     assert a.info["evidence_source"] == "scans" and b.info["evidence_source"] == "support"
-    rot, tr = transform_errors(a.T_target_source, b.T_target_source)
-    assert rot < 0.1 and tr < 0.05, (rot, tr)  # the same ICP optimum (deg, m)
     T_gt = invert(kitti.poses[0]) @ kitti.poses[5]
     rot, tr = transform_errors(a.T_target_source, T_gt)
     assert rot < 1.0 and tr < 1.0, (rot, tr)
-    assert a.timings["scan_evidence"] > 0
+    rot, tr = transform_errors(a.T_target_source, b.T_target_source)
+    assert rot < 0.2 and tr < 0.1, (rot, tr)
 
 
-def test_kitti_vs_courtyard_invalid_on_scan_evidence(scans) -> None:
-    """Scans of two different places (KITTI street, hand-held courtyard) share no view: invalid."""
+def test_kitti_vs_courtyard_invalid_after_both_passes(scans) -> None:
+    """Scans of two different places (KITTI street, hand-held courtyard) share no view: invalid
+    on the support points and again on the raw scans."""
     kitti, court = scans
-    sm = _matcher("scans")
-    for k, c in ((0, 10), (5, 60)):
-        r = sm.register(court[c].points, kitti[k].points)
-        assert not r.valid, (k, c, r.message)
+    sm = _matcher("support_then_scans")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for k, c in ((0, 10), (5, 60)):
+            r = sm.register(court[c].points, kitti[k].points)
+            assert not r.valid, (k, c, r.message)
+            assert "raw scans:" in r.message and "scan_pass" in r.timings
 
 
-def test_switch_changes_the_evidence_and_thresholds(scans) -> None:
-    """evidence='scans' scores on more points than the support, and decides at the scans'
-    thresholds (VerificationConfig.scans) instead of the support points'."""
-    kitti, _ = scans
+def test_switch_falls_back_to_scan_evidence(scans) -> None:
+    """Courtyard 1 <- 41 (a calibration pair): the support points explain less than min_overlap
+    at the right pose (0.18, docs/verification.md Session 11), the raw scans verify it; with
+    evidence='support' it stays invalid."""
+    _, court = scans
+    ext = suite_config("balm_courtyard").extractor
+    a = _matcher("support_then_scans", ext).register(court[41].points, court[1].points)
+    b = _matcher("support", ext).register(court[41].points, court[1].points)
+    assert not b.valid and b.info["evidence_source"] == "support"
+    assert a.valid, a.message
+    assert a.info["evidence_source"] == "scans" and "support_message" in a.info
+    T_gt = invert(court.poses[1]) @ court.poses[41]
+    rot, tr = transform_errors(a.T_target_source, T_gt)
+    assert rot < 1.0 and tr < 0.3, (rot, tr)
+
+
+def test_scan_thresholds_apply_to_scan_evidence_only() -> None:
+    """The raw scans' thresholds replace the support points' for that evidence only; lines-only
+    keeps its own."""
     cfg = VerificationConfig()
     assert cfg.scans is not None
     th = cfg.for_evidence(["line", "plane"], "scans")
     assert (th.min_overlap, th.max_rival_ratio, th.max_conflict) == (
         cfg.scans.min_overlap, cfg.scans.max_rival_ratio, cfg.scans.max_conflict)
+    if cfg.scans.confidence_coef is not None:
+        assert th.confidence_coef == cfg.scans.confidence_coef
     assert cfg.for_evidence(["line", "plane"], "support").min_overlap == cfg.min_overlap
     assert cfg.for_evidence(["line"], "scans").min_overlap == cfg.lines_only.min_overlap  # type: ignore[union-attr]
-    a = _matcher("scans").register(kitti[3].points, kitti[0].points)
-    b = _matcher("support").register(kitti[3].points, kitti[0].points)
-    assert abs(a.overlap - b.overlap) > 0.05, (a.overlap, b.overlap)
-    assert np.isfinite(a.confidence) and 0.0 <= a.confidence <= 1.0
+    assert np.isclose(VerificationConfig(scans=None).for_evidence(["plane"], "scans").min_overlap, cfg.min_overlap)
