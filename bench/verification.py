@@ -401,8 +401,10 @@ def choose_thresholds(cal: list[dict], conflicts: np.ndarray | None = None, grou
                       wide_conflicts: np.ndarray | None = None,
                       prior: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, float, float, dict]:
     """Most calibration recall with precision >= 99.5 % (in each of ``groups`` when given) and
-    <= ``max_neg_fpr`` valid-and-wrong negatives (vectorised over the grid); ties: the stricter
-    overlap / ratio, the looser conflict (``loose_conflict``) or the stricter. Rows with a
+    <= ``max_neg_fpr`` valid-and-wrong negatives (vectorised over the grid); ties, in this
+    order: the lower overlap, the stricter (lower) ratio, the looser conflict
+    (``loose_conflict``) or the stricter. (Until session 14 this said "the stricter overlap"; the
+    code has always kept the lower one, and every shipped threshold was chosen by the code.) Rows with a
     ``wide`` pass are decided as the matcher does: the first pass when valid, else the wide one.
     ``prior`` (valid, correct per row): a decision taken before these rows' (the support points'
     at their thresholds); a row counts as valid when it is valid or the prior is, with the
