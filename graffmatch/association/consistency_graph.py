@@ -164,6 +164,85 @@ def _row_windows(src_vals, src_a2s, src_start, vals, start, a, b, n_groups, epsi
             win1[s_a2s[s]] = lo + k1
 
 
+@nb.njit(cache=True)
+def _query_windows(D_i, groups_i, groups_j, vals, start, n_groups, epsilon):
+    """The windows of every same-group pair (a, b) at once, in query order: :func:`_row_windows`'
+    ends for row (a, b) and source landmark a2 != a are ``win0[boff[b] + pos[a, a2]]`` and
+    ``win1[...]`` (the same values).
+
+    The distances D_i[a, a2] of each group pair (g, t) (a in g, a2 in t, a2 != a) are sorted
+    once; each target b of group g merges that one list with its run of group t and writes the
+    ends in list order (sequential writes). A pointer moves ~36 times over ~1,300 queries at W2
+    (a predictable branch), where counting a run per row reads the whole run (~36 comparisons a
+    query) and merging per row mispredicts about every other step. Returns
+    (win0, win1, boff, pos) as int32 / int64."""
+    n_i = D_i.shape[0]
+    n_j = groups_j.shape[0]
+    gsize = np.zeros(n_groups, dtype=np.int64)
+    for a in range(n_i):
+        gsize[groups_i[a]] += 1
+    # the queries of group pair (g, t) at qstart[g, t]:qstart[g, t + 1], ascending distance;
+    # group g's list starts at qstart[g, 0]
+    qstart = np.zeros((n_groups, n_groups + 1), dtype=np.int64)
+    total = 0
+    for g in range(n_groups):
+        for t in range(n_groups):
+            qstart[g, t] = total
+            total += gsize[g] * (gsize[t] - (g == t))
+        qstart[g, n_groups] = total
+    qd = np.empty(total)
+    qpos = np.empty(total, dtype=np.int64)  # a * n_i + a2 of each query
+    fill = qstart[:, :n_groups].copy()
+    for a in range(n_i):
+        g = groups_i[a]
+        for a2 in range(n_i):
+            if a2 != a:
+                t = groups_i[a2]
+                k = fill[g, t]
+                qd[k] = D_i[a, a2]
+                qpos[k] = a * n_i + a2
+                fill[g, t] = k + 1
+    pos = np.zeros((n_i, n_i), dtype=np.int64)
+    for g in range(n_groups):
+        for t in range(n_groups):
+            lo, hi = qstart[g, t], qstart[g, t + 1]
+            order = np.argsort(qd[lo:hi], kind="quicksort")
+            qd[lo:hi] = qd[lo:hi][order]
+            qpos[lo:hi] = qpos[lo:hi][order]
+            for q in range(lo, hi):
+                pa = qpos[q]
+                pos[pa // n_i, pa % n_i] = q - qstart[g, 0]
+    boff = np.empty(n_j + 1, dtype=np.int64)
+    boff[0] = 0
+    for b in range(n_j):
+        g = groups_j[b]
+        boff[b + 1] = boff[b] + qstart[g, n_groups] - qstart[g, 0]
+    win0 = np.empty(boff[n_j], dtype=np.int32)
+    win1 = np.empty(boff[n_j], dtype=np.int32)
+    for b in range(n_j):
+        g = groups_j[b]
+        out = boff[b] - qstart[g, 0]
+        for t in range(n_groups):
+            lo = start[b, t]
+            run = vals[lo:start[b, t + 1]]
+            hi = run.shape[0]
+            k0 = 0
+            k1 = 0
+            for q in range(qstart[g, t], qstart[g, t + 1]):
+                d = qd[q]
+                x0 = d - epsilon
+                x1 = d + epsilon
+                while k0 < hi and run[k0] <= x0:
+                    k0 += 1
+                if k1 < k0:
+                    k1 = k0
+                while k1 < hi and run[k1] < x1:
+                    k1 += 1
+                win0[out + q] = lo + k0
+                win1[out + q] = lo + k1
+    return win0, win1, boff, pos
+
+
 @nb.njit(cache=True, fastmath=True)
 def _exp_nonpositive(x, out, n, squarings):
     """out[:n] = exp(x[:n]) for -0.5 * 2**squarings <= x <= 0, branch-free so that it
@@ -194,8 +273,10 @@ def _squarings(epsilon: float, inv_two_sigma2: float) -> int:
     return max(0, int(np.ceil(np.log2(max(x_min, 1e-300) / 0.5))))
 
 
-# Largest table of one row's windows per source landmark kept from the counting pass for the
-# filling pass (m x n_i x 2 int32; 13 MB at W3) instead of merging the sorted runs twice.
+# Largest pair of window tables (every same-group pair's windows per source landmark in query
+# order, :func:`_query_windows`, and each row's copied from it by the counting pass for the
+# filling pass: 2 int32 a window each, 25 MB at W3) instead of merging the sorted runs per row
+# twice. (The filling pass gathering from the first table directly was ~1 ms slower at W2.)
 _MAX_WINDOW_TABLE_BYTES = 64 * 2**20
 # Entries the affine fill writes per chunk of a window (2.5 M at W2: 10.3 -> 8.0 ms for the fill
 # against a loop over each window's own length, the same values).
@@ -269,6 +350,17 @@ def _row_sum_any_order(w, bounds):
 
 
 @nb.njit(cache=True)
+def _stored_windows(qwin0, qwin1, base, pos_a, a, win0, win1):
+    """Row (a, b)'s windows from :func:`_query_windows`' table (``base`` = boff[b], ``pos_a`` =
+    pos[a]); win0[a] = win1[a] = 0 (unused)."""
+    for a2 in range(pos_a.shape[0]):
+        k = base + pos_a[a2]
+        ok = a2 != a
+        win0[a2] = qwin0[k] if ok else 0
+        win1[a2] = qwin1[k] if ok else 0
+
+
+@nb.njit(cache=True)
 def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_two_sigma2, n_groups, weights,
            index, squarings, keep_windows, row_base, col_rank, exact_scale):
     """Symmetric CSR (indptr, indices, data) of the graph over the associations ``assoc``
@@ -277,8 +369,8 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
     group t, the window of b's sorted distances to group t within epsilon of D_i[a, a2]. Each
     row is written once, in order (no scattered writes); a first pass counts the row lengths
     (with ``all_valid``, every same-group pair is an association: the window sizes). With
-    ``keep_windows`` the first pass stores every row's windows for the second (one merge of the
-    sorted runs per row instead of two). Also returns the weighted degrees (row sums of the
+    ``keep_windows`` the windows of all rows come from one merge per target landmark and group
+    (:func:`_query_windows`), else from merging the sorted runs per row in each pass. Also returns the weighted degrees (row sums of the
     stored weights, equal to the sum in order that
     :func:`~graffmatch.association.clipper.solve_clipper`'s validation pass does, see
     :func:`_row_sum_any_order`) and the largest weight (0 for no edges), so the solver need not
@@ -298,19 +390,28 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
         col_k[k] = col_rank[b2s[k]]
     vals_p = np.zeros(vals.shape[0] + _CHUNK)
     vals_p[: vals.shape[0]] = vals
-    src_vals, src_a2s, src_start = _row_pair_tables(D_i, groups_i, n_groups)
+    # the source's sorted runs serve the per-row merges only (none with a window table)
+    src_vals, src_a2s, src_start = _row_pair_tables(D_i[:0, :0] if keep_windows else D_i, groups_i, n_groups)
     win0 = np.zeros(n_i, dtype=np.int64)
     win1 = np.zeros(n_i, dtype=np.int64)
+    if keep_windows:
+        qwin0, qwin1, boff, qpos = _query_windows(D_i, groups_i, groups_j, vals, start, n_groups, epsilon)
+    else:
+        qwin0 = qwin1 = np.zeros(0, dtype=np.int32)
+        boff = np.zeros(0, dtype=np.int64)
+        qpos = np.zeros((0, 0), dtype=np.int64)
     table = np.empty((m if keep_windows else 0, 2, n_i), dtype=np.int32)
     indptr = np.zeros(m + 1, dtype=np.int64)
     longest = 0
     for u in range(m):
         a, b = assoc[u, 0], assoc[u, 1]
-        _row_windows(src_vals, src_a2s, src_start, vals, start, a, b, n_groups, epsilon, win0, win1)
         if keep_windows:
+            _stored_windows(qwin0, qwin1, boff[b], qpos[a], a, win0, win1)
             for a2 in range(n_i):
                 table[u, 0, a2] = win0[a2]
                 table[u, 1, a2] = win1[a2]
+        else:
+            _row_windows(src_vals, src_a2s, src_start, vals, start, a, b, n_groups, epsilon, win0, win1)
         c = 0
         for a2 in range(n_i):
             if a2 == a:
@@ -414,6 +515,14 @@ def _affine_ids(lookup: NDArray, gi: NDArray[np.int64], gj: NDArray[np.int64]
     return (row_base, col_rank) if ok else (None, None)
 
 
+def _window_table_entries(gi: NDArray[np.int64], gj: NDArray[np.int64], n_i: int) -> int:
+    """Entries of :func:`_query_windows`' table: per target b of group g, one per source pair
+    (a, a2 != a) with a in g."""
+    n_groups = int(max(gi.max(initial=0), gj.max(initial=0))) + 1
+    ci, cj = np.bincount(gi, minlength=n_groups), np.bincount(gj, minlength=n_groups)
+    return int(np.sum(cj * ci * (n_i - 1)))
+
+
 def build_consistency_graph(
     D_i: ArrayLike,
     D_j: ArrayLike,
@@ -476,7 +585,8 @@ def build_consistency_graph(
     indptr, indices, data, wdeg, w_max = _build(
         D_i, D_j, gi, gj, assoc, lookup, all_valid, float(epsilon), inv2s2, n_groups,
         np.empty(0, dtype=dtype), index, _squarings(float(epsilon), inv2s2),
-        m * n_i * 8 <= _MAX_WINDOW_TABLE_BYTES and n_j * n_j < 2**31,  # int32 window ends
+        (_window_table_entries(gi, gj, n_i) + m * n_i) * 8 <= _MAX_WINDOW_TABLE_BYTES
+        and n_j * n_j < 2**31,  # int32 window ends
         row_base, col_rank,
         _EXACT_SUM_SCALE if np.dtype(dtype) == np.float32 else 0.0,  # float32's 24-bit significand
     )

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from graffmatch.association.consistency_graph import build_consistency_graph
 from graffmatch.association.putative import all_to_all, count_all_to_all
@@ -261,6 +263,45 @@ def test_row_windows_equal_searchsorted(n_j):
                 run = vals[lo:hi]
                 assert win0[a2] == lo + np.searchsorted(run, Di[a, a2] - eps, "right")
                 assert win1[a2] == lo + np.searchsorted(run, Di[a, a2] + eps, "left")
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n_i=st.integers(1, 30), n_j=st.integers(1, 90), n_groups=st.integers(1, 3),
+       grid=st.booleans())
+def test_query_windows_equal_the_row_windows(seed, n_i, n_j, n_groups, grid):
+    """_query_windows (one merge per target landmark and group over sorted source distances)
+    gives every same-group pair (a, b) the ends of _row_windows (counted or merged per row), and
+    so np.searchsorted's: ties (distances on a 0.05 grid), empty groups, runs over
+    _COUNT_MAX_RUN and single landmarks."""
+    import graffmatch.association.consistency_graph as cg
+
+    rng = np.random.default_rng(seed)
+    eps = 0.2
+
+    def dist(n):
+        D = rng.uniform(0, 5, (n, n))
+        D = np.round(D / 0.05) * 0.05 if grid else D
+        D = np.triu(D, 1)
+        return D + D.T
+
+    Di, Dj = dist(n_i), dist(n_j)
+    gi, gj = rng.integers(0, n_groups, n_i), rng.integers(0, n_groups, n_j)
+    vals, _, start = cg._row_pair_tables(Dj, gj, n_groups)
+    src_vals, src_a2s, src_start = cg._row_pair_tables(Di, gi, n_groups)
+    qwin0, qwin1, boff, pos = cg._query_windows(Di, gi, gj, vals, start, n_groups, eps)
+    assert qwin0.size == cg._window_table_entries(gi, gj, n_i)
+    win0, win1 = np.zeros(n_i, dtype=np.int64), np.zeros(n_i, dtype=np.int64)
+    got0, got1 = np.zeros(n_i, dtype=np.int64), np.zeros(n_i, dtype=np.int64)
+    for b in range(n_j):
+        for a in np.flatnonzero(gi == gj[b]):
+            cg._row_windows(src_vals, src_a2s, src_start, vals, start, a, b, n_groups, eps, win0, win1)
+            cg._stored_windows(qwin0, qwin1, boff[b], pos[a], a, got0, got1)
+            others = np.arange(n_i) != a
+            assert np.array_equal(got0[others], win0[others]) and np.array_equal(got1[others], win1[others])
+            for a2 in np.flatnonzero(others):
+                lo, hi = start[b, gi[a2]], start[b, gi[a2] + 1]
+                assert got0[a2] == lo + np.searchsorted(vals[lo:hi], Di[a, a2] - eps, "right")
+                assert got1[a2] == lo + np.searchsorted(vals[lo:hi], Di[a, a2] + eps, "left")
 
 
 def test_weights_and_degrees_equal_their_definition_bit_for_bit():
