@@ -49,6 +49,9 @@ _SCATTER_FRACTION = 0.9
 # isolated). Below it (x already in L1: W2 0.94 against 0.86 ms) the float64 gather is kept.
 # Products differ by ~4e-9 relative (x's float32 rounding).
 _F32_GATHER_MIN = 6144
+# The greedy cliques scan a new member's row with a branch per entry (candidate or not) when
+# the candidates number less than 1 / this of the row, else branch-free.
+_SPARSE_SCAN = 8
 _NO_DENSE = np.zeros((0, 0), dtype=np.float32)
 _NO_QU = np.zeros(0)
 _NO_POSITIONS = np.zeros(0, dtype=np.int64)
@@ -1219,10 +1222,13 @@ def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_wo
         if (skip_covered and covered[s]) or 1.0 + (indptr[s + 1] - indptr[s]) * w_max <= best:
             continue
         n_cand = 0
+        repeated = 0  # a column repeated in the start's row (the candidates hold it twice)
         cols, w = _row(indptr, indices, data, s)
         for t in range(cols.shape[0]):
             j = cols[t]
             score[j] = w[t] * allowed[j]  # branch-free: the other vertices keep score 0
+            repeated |= mark[j]
+            mark[j] = allowed[j]
             cand[n_cand] = j
             n_cand += allowed[j]
         work += indptr[s + 1] - indptr[s]
@@ -1230,8 +1236,8 @@ def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_wo
         k = 1
         total_w = 0.0
         aborted = False
+        bi, bs = best_candidate(cand, n_cand, score)
         while n_cand > 0:
-            bi, bs = best_candidate(cand, n_cand, score)
             # Bound on any clique grown from here: the candidates S (j = |S|) add at most
             # their current scores (<= bs each) plus j (j - 1) / 2 w_max among themselves;
             # the objective, quasi-convex in j, is largest at j = 0 or j = n_cand.
@@ -1242,31 +1248,51 @@ def _greedy_core(indptr, indices, data, starts, lower_bound, max_cliques, max_wo
             clique[k] = bi
             k += 1
             total_w += bs
-            # Keep the candidates adjacent to bi: flag them, scan bi's row once, compact.
-            for c in range(n_cand):
-                mark[cand[c]] = 1
+            # Keep the candidates adjacent to bi: scan bi's row once (the candidates are
+            # flagged 1 already), compact, and pick the next best while compacting.
             mark[bi] = 0
             score[bi] = 0.0
             cols, w = _row(indptr, indices, data, bi)
-            for t in range(cols.shape[0]):
-                # branch-free: non-candidates (score 0) add exact zeros
-                j = cols[t]
-                c = mark[j] & 1  # (& 1: a repeated column counts as a candidate again, as before)
-                score[j] += w[t] * c
-                mark[j] = c * 3
+            if n_cand * _SPARSE_SCAN < cols.shape[0]:
+                # few candidates: a branch that is nearly always "not a candidate" is cheaper
+                # than the stores below (for a non-candidate they store the values it has)
+                for t in range(cols.shape[0]):
+                    j = cols[t]
+                    c = mark[j] & 1
+                    if c:
+                        score[j] += w[t] * c
+                        mark[j] = c * 3
+            else:
+                for t in range(cols.shape[0]):
+                    # branch-free: non-candidates (score 0) add exact zeros
+                    j = cols[t]
+                    c = mark[j] & 1  # (& 1: a repeated column counts as a candidate again, as before)
+                    score[j] += w[t] * c
+                    mark[j] = c * 3
             new_n = 0
+            nbi = -1
+            nbs = -1.0
             for c in range(n_cand):
                 v = cand[c]
                 keep = mark[v] == 3 and v != bi
-                mark[v] = 0
+                mark[v] = keep  # a candidate again (1) or not (0)
                 cand[new_n] = v
                 new_n += keep
-                if not keep:
-                    score[v] = 0.0
+                x = score[v] if keep else 0.0
+                score[v] = x
+                better = keep and x > nbs  # the first of the highest, as best_candidate
+                nbi = v if better else nbi
+                nbs = x if better else nbs
             work += (indptr[bi + 1] - indptr[bi]) + 2 * n_cand
             n_cand = new_n
+            if repeated:  # a repeated candidate's second copy unflags and zeroes the first
+                for c in range(n_cand):
+                    mark[cand[c]] = 1
+                nbi, nbs = best_candidate(cand, n_cand, score)
+            bi, bs = nbi, nbs
         for c in range(n_cand):
             score[cand[c]] = 0.0
+            mark[cand[c]] = 0
         if aborted:
             continue
         for c in range(k):
