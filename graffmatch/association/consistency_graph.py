@@ -273,10 +273,10 @@ def _squarings(epsilon: float, inv_two_sigma2: float) -> int:
     return max(0, int(np.ceil(np.log2(max(x_min, 1e-300) / 0.5))))
 
 
-# Largest pair of window tables (every same-group pair's windows per source landmark in query
-# order, :func:`_query_windows`, and each row's copied from it by the counting pass for the
-# filling pass: 2 int32 a window each, 25 MB at W3) instead of merging the sorted runs per row
-# twice. (The filling pass gathering from the first table directly was ~1 ms slower at W2.)
+# Largest table of one row's windows per source landmark kept from the counting pass for the
+# filling pass (m x n_i x 2 int32; 13 MB at W3) instead of merging the sorted runs twice; also the
+# bound on it plus :func:`_query_windows`' table (the filling pass gathering from that one
+# directly, without the row table, was ~1 ms slower at W2).
 _MAX_WINDOW_TABLE_BYTES = 64 * 2**20
 # Entries the affine fill writes per chunk of a window (2.5 M at W2: 10.3 -> 8.0 ms for the fill
 # against a loop over each window's own length, the same values).
@@ -362,15 +362,16 @@ def _stored_windows(qwin0, qwin1, base, pos_a, a, win0, win1):
 
 @nb.njit(cache=True)
 def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_two_sigma2, n_groups, weights,
-           index, squarings, keep_windows, row_base, col_rank, exact_scale):
+           index, squarings, keep_windows, by_query, row_base, col_rank, exact_scale):
     """Symmetric CSR (indptr, indices, data) of the graph over the associations ``assoc``
     (``lookup[a, b]`` = vertex id or -1), with ``index``'s and ``weights``' dtypes (empty
     arrays), written row by row: row u = (a, b) takes, for every other source landmark a2 of
     group t, the window of b's sorted distances to group t within epsilon of D_i[a, a2]. Each
     row is written once, in order (no scattered writes); a first pass counts the row lengths
     (with ``all_valid``, every same-group pair is an association: the window sizes). With
-    ``keep_windows`` the windows of all rows come from one merge per target landmark and group
-    (:func:`_query_windows`), else from merging the sorted runs per row in each pass. Also returns the weighted degrees (row sums of the
+    ``keep_windows`` the first pass stores every row's windows for the second (one merge of the
+    sorted runs per row instead of two); with ``by_query`` too, the first pass takes them from
+    one merge per target landmark and group (:func:`_query_windows`; for short runs). Also returns the weighted degrees (row sums of the
     stored weights, equal to the sum in order that
     :func:`~graffmatch.association.clipper.solve_clipper`'s validation pass does, see
     :func:`_row_sum_any_order`) and the largest weight (0 for no edges), so the solver need not
@@ -391,10 +392,10 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
     vals_p = np.zeros(vals.shape[0] + _CHUNK)
     vals_p[: vals.shape[0]] = vals
     # the source's sorted runs serve the per-row merges only (none with a window table)
-    src_vals, src_a2s, src_start = _row_pair_tables(D_i[:0, :0] if keep_windows else D_i, groups_i, n_groups)
+    src_vals, src_a2s, src_start = _row_pair_tables(D_i[:0, :0] if by_query else D_i, groups_i, n_groups)
     win0 = np.zeros(n_i, dtype=np.int64)
     win1 = np.zeros(n_i, dtype=np.int64)
-    if keep_windows:
+    if by_query:
         qwin0, qwin1, boff, qpos = _query_windows(D_i, groups_i, groups_j, vals, start, n_groups, epsilon)
     else:
         qwin0 = qwin1 = np.zeros(0, dtype=np.int32)
@@ -405,13 +406,14 @@ def _build(D_i, D_j, groups_i, groups_j, assoc, lookup, all_valid, epsilon, inv_
     longest = 0
     for u in range(m):
         a, b = assoc[u, 0], assoc[u, 1]
-        if keep_windows:
+        if by_query:
             _stored_windows(qwin0, qwin1, boff[b], qpos[a], a, win0, win1)
+        else:
+            _row_windows(src_vals, src_a2s, src_start, vals, start, a, b, n_groups, epsilon, win0, win1)
+        if keep_windows:
             for a2 in range(n_i):
                 table[u, 0, a2] = win0[a2]
                 table[u, 1, a2] = win1[a2]
-        else:
-            _row_windows(src_vals, src_a2s, src_start, vals, start, a, b, n_groups, epsilon, win0, win1)
         c = 0
         for a2 in range(n_i):
             if a2 == a:
@@ -582,11 +584,15 @@ def build_consistency_graph(
     row_base, col_rank = _affine_ids(lookup, gi, gj) if all_valid else (None, None)
     if row_base is None:
         row_base = col_rank = np.zeros(0, dtype=np.int64)
+    # int32 window ends; the query windows only where runs are short (W2: 1 ms less; at W3, runs
+    # of ~72, the per-row merge is as fast and the second table cost ~10 ms more)
+    keep = m * n_i * 8 <= _MAX_WINDOW_TABLE_BYTES and n_j * n_j < 2**31
+    by_query = (keep and int(np.bincount(gj, minlength=n_groups).max(initial=0)) <= _COUNT_MAX_RUN
+                and (_window_table_entries(gi, gj, n_i) + m * n_i) * 8 <= _MAX_WINDOW_TABLE_BYTES)
     indptr, indices, data, wdeg, w_max = _build(
         D_i, D_j, gi, gj, assoc, lookup, all_valid, float(epsilon), inv2s2, n_groups,
         np.empty(0, dtype=dtype), index, _squarings(float(epsilon), inv2s2),
-        (_window_table_entries(gi, gj, n_i) + m * n_i) * 8 <= _MAX_WINDOW_TABLE_BYTES
-        and n_j * n_j < 2**31,  # int32 window ends
+        keep, by_query,
         row_base, col_rank,
         _EXACT_SUM_SCALE if np.dtype(dtype) == np.float32 else 0.0,  # float32's 24-bit significand
     )

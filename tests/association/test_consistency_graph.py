@@ -144,9 +144,10 @@ def test_matcher_builds_compact_graph_only_without_verification(monkeypatch):
 
 @pytest.mark.parametrize("gated", [False, True])
 def test_stored_windows_give_the_same_graph_as_merging_twice(monkeypatch, gated):
-    """The filling pass reads the windows the counting pass stored (small tables) or merges the
-    sorted runs again (tables over _MAX_WINDOW_TABLE_BYTES): the same CSR and degrees, bit for
-    bit, all-to-all and for an explicit (gated) association list."""
+    """The filling pass reads the windows the counting pass stored (small tables; taken from
+    _query_windows' table where runs are short, else merged per row) or merges the sorted runs
+    again (tables over _MAX_WINDOW_TABLE_BYTES): the same CSR and degrees, bit for bit,
+    all-to-all and for an explicit (gated) association list."""
     import graffmatch.association.consistency_graph as cg
 
     sc = make_scene_pair(9, 14, seed=2)
@@ -155,12 +156,15 @@ def test_stored_windows_give_the_same_graph_as_merging_twice(monkeypatch, gated)
     kw = dict(types_i=sc.source.types, types_j=sc.target.types)
     if gated:
         kw["associations"] = assoc[np.random.default_rng(0).random(len(assoc)) < 0.6]
+    by_query = build_consistency_graph(Di, Dj, **kw)
+    monkeypatch.setattr(cg, "_COUNT_MAX_RUN", 0)  # the Python-side choice only: rows merged per row
     stored = build_consistency_graph(Di, Dj, **kw)
     monkeypatch.setattr(cg, "_MAX_WINDOW_TABLE_BYTES", 0)
     merged = build_consistency_graph(Di, Dj, **kw)
     assert stored.n_edges == merged.n_edges > 100
     for name in ("indptr", "indices", "data", "weighted_degrees"):
         assert np.array_equal(getattr(stored, name), getattr(merged, name))
+        assert np.array_equal(getattr(by_query, name), getattr(merged, name))
     assert np.allclose(stored.weighted_degrees, np.asarray(stored.weights.astype(np.float64).sum(axis=1)).ravel(), rtol=1e-12)
 
 
