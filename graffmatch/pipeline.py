@@ -5,7 +5,7 @@ matcher once. It is the single code path for :func:`register_scans`, ``graffmatc
 the demo, the evaluation's GraffMatch methods and ``graffmatch loops``; its config is a nested
 pydantic model, written next to every result.
 
-With raw scans at hand, ``evidence='support_then_scans'`` verifies again on the scans' non-ground
+With raw scans at hand, ``evidence='support_then_scans'`` (opt-in) verifies again on the scans' non-ground
 voxel clouds (the extractor's ``last_cloud``) when the landmarks' support points give no valid
 answer, at thresholds chosen for that evidence (``VerificationConfig.scans``). The winner is refined by ICP on the
 voxel-downsampled non-ground scans (or on the matched landmarks' points). ``register`` hands ICP the extractor's own voxel cloud
@@ -76,13 +76,15 @@ class ScanMatcherConfig(BaseModel):
     matcher: GraffMatchConfig = Field(default_factory=GraffMatchConfig)
     refinement: RefinementConfig = Field(default_factory=RefinementConfig)
     evidence: Literal["support", "support_then_scans"] = Field(
-        "support_then_scans",
+        "support",
         description="what register() verifies hypotheses on: support (the landmarks' support points, as "
-        "match() on landmark sets) or support_then_scans (when the support points give no valid answer, "
-        "verify again on the scans' non-ground voxel clouds from the extractor, matcher.verification."
-        "scan_voxel / scan_max_points, at verification.scans' thresholds; chosen on the calibration split "
-        "of bench/verification.py --evidence scans: sim-downtown test recall 0.917 -> 0.967 at precision 1.000, "
-        "no valid negative, docs/verification.md Session 14; a lines-only matcher keeps the support points only)",
+        "match() on landmark sets; the default) or support_then_scans (when the support points give no valid "
+        "answer, verify again on the scans' non-ground voxel clouds from the extractor, matcher.verification."
+        "scan_voxel / scan_max_points, at verification.scans' thresholds, chosen on the calibration split of "
+        "bench/verification.py --evidence scans: on whole scans sim-downtown test recall 0.917 -> 0.967 at "
+        "precision 1.000; but on partial views its extra answers are less often right, e.g. courtyard scans cut "
+        "to 90-180 deg: precision 0.924 -> 0.892, bench/verification_partial_views.py; docs/verification.md "
+        "Session 14; a lines-only matcher keeps the support points only)",
     )
 
 

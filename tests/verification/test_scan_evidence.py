@@ -77,6 +77,10 @@ def test_switch_falls_back_to_scan_evidence(scans) -> None:
     a = _matcher("support_then_scans", ext).register(court[41].points, court[1].points)
     b = _matcher("support", ext).register(court[41].points, court[1].points)
     assert not b.valid and b.info["evidence_source"] == "support"
+    # the default is the support points alone: the fallback's extra answers are less reliable
+    # on partial views (docs/verification.md, Session 14, bench/verification_partial_views.py)
+    c = ScanMatcher(ScanMatcherConfig(extractor=ext)).register(court[41].points, court[1].points)
+    assert not c.valid and "scan_pass" not in c.timings and "raw scans:" not in c.message
     assert a.valid, a.message
     assert a.info["evidence_source"] == "scans" and "support_message" in a.info
     T_gt = invert(court.poses[1]) @ court.poses[41]
