@@ -11,6 +11,12 @@ sorted once per scan, so the work is proportional to the edges (plus m x n_i sea
 row is written once, in order, straight into the symmetric CSR arrays. An explicit association
 list (a subset, e.g. gated associations) takes the same path through a lookup table. No dense
 m x m matrix is allocated.
+
+The module runs past 600 lines on purpose: the window search (which target pairs lie within
+epsilon of a row), the weights and the two-pass CSR fill read the same group-sorted tables and
+the same window layout, and their choice between per-row and stored windows is one decision in
+``_build``. ``bench/association_ab.py`` also loads an older version of this one file next to the
+current one for its in-process A/B, so the whole graph build stays in one file.
 """
 
 from __future__ import annotations
