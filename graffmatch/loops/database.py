@@ -9,6 +9,12 @@ A landmark-poor scan may also keep its *evidence cloud* (the voxelised non-groun
 the verified matcher scores hypotheses against), quantised to int16 at ``POINT_QUANTUM_M``,
 sorted and delta-coded (modulo 2^16, so decoding is exact): ~2-4 kB for 1,500 points. Landmarks
 alone cannot verify a scan with three or four of them; its points can.
+
+A landmark-poor scan may further keep its *scan cloud* (``scan``: the extractor's non-ground voxel
+cloud re-voxelised at the raw-scan evidence's 0.6 m and capped at its 2,000 points, same codec):
+the support points of three landmarks are a few facades, where true poses explain as little as
+0.06-0.18 of them on a plain downtown street; every non-ground surface of the scan separates the
+right pose from a slid one (``verification.verify.scan_evidence``, docs/loops.md session 15).
 """
 
 from __future__ import annotations
@@ -101,19 +107,36 @@ def with_evidence_points(ls: LandmarkSet, points: NDArray | None) -> LandmarkSet
                        sensor_pose=ls.sensor_pose)
 
 
-def landmarks_to_bytes(ls: LandmarkSet) -> bytes:
-    """The stored form: the landmark table, and the support points (quantised) when ``ls`` has any."""
+def landmarks_to_bytes(ls: LandmarkSet, scan: NDArray | None = None) -> bytes:
+    """The stored form: the landmark table, the support points (quantised) when ``ls`` has any,
+    and the scan cloud ``scan`` (quantised) when given."""
     buf = io.BytesIO()
     arrays = {"landmarks": encode_landmarks(ls)}
     if ls.points is not None and len(ls.points):
         arrays["points"] = encode_points(ls.points)
+    if scan is not None and len(scan):
+        arrays["scan"] = encode_points(scan)
     np.savez_compressed(buf, **arrays)
     return buf.getvalue()
 
 
-def save_landmarks(path: str | Path, ls: LandmarkSet) -> Path:
+def save_landmarks(path: str | Path, ls: LandmarkSet, scan: NDArray | None = None) -> Path:
     """Write atomically (a killed run never leaves a half-written file behind)."""
-    return write_bytes_atomic(path, landmarks_to_bytes(ls))
+    return write_bytes_atomic(path, landmarks_to_bytes(ls, scan))
+
+
+def load_scan_cloud(path: str | Path) -> NDArray[np.float32] | None:
+    """The stored scan cloud of a landmark file (None when it keeps none)."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            code = z["scan"] if "scan" in z.files else None
+    except (OSError, ValueError, KeyError, EOFError) as exc:
+        raise MalformedFileError(f"{path}: cannot read landmark table ({exc})") from exc
+    try:
+        return None if code is None else decode_points(code)
+    except MalformedFileError as exc:
+        raise MalformedFileError(f"{path}: {exc}") from exc
 
 
 def load_landmarks(path: str | Path) -> LandmarkSet:
@@ -173,10 +196,15 @@ class LandmarkDatabase:
             return np.zeros((0, 0), np.float32)
         return np.stack(d)
 
-    def bytes_per_scan(self) -> float:
-        """Mean stored size of a scan: its compressed landmark table (and evidence points, when
-        kept) plus its descriptor."""
+    def stored_bytes(self) -> NDArray[np.int64]:
+        """Stored size of every scan: its compressed landmark table (and evidence points and
+        scan cloud, when kept) plus its descriptor."""
         if not len(self):
-            return 0.0
-        sizes = [len(landmarks_to_bytes(ls)) for ls in self.landmarks]
-        return float(np.mean(sizes) + self.descriptors[0].nbytes)
+            return np.zeros(0, np.int64)
+        scans = self.extra.get("scan", [None] * len(self))
+        return np.array([len(landmarks_to_bytes(ls, sc)) + self.descriptors[0].nbytes
+                         for ls, sc in zip(self.landmarks, scans, strict=True)], np.int64)
+
+    def bytes_per_scan(self) -> float:
+        """Mean of :meth:`stored_bytes`."""
+        return float(self.stored_bytes().mean()) if len(self) else 0.0

@@ -29,10 +29,17 @@ from graffmatch.loops.database import (
 from graffmatch.loops.descriptor import DescriptorConfig, landmark_descriptor
 from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_check_many, quick_index
 from graffmatch.loops.retrieval import RetrievalConfig, eligible_count, make_retriever
-from graffmatch.loops.verify import LoopClosure, VerificationConfig, verify_candidate, verify_query
+from graffmatch.loops.verify import (
+    LoopClosure,
+    VerificationConfig,
+    scan_pass,
+    verify_candidate,
+    verify_query,
+)
 from graffmatch.matcher import GraffMatchConfig
 from graffmatch.pipeline import ScanMatcher, ScanMatcherConfig
 from graffmatch.verification.evidence import evidence_points as matcher_evidence_points
+from graffmatch.verification.evidence import voxel_downsample
 
 
 class LoopDetectorConfig(BaseModel):
@@ -81,6 +88,17 @@ class LoopDetector:
             ls = with_evidence_points(ls, self.evidence_points(landmarks))
         return ls, landmark_descriptor(ls, self.config.descriptor)
 
+    def stored_scan(self, stored: LandmarkSet, cloud_points: NDArray | None) -> NDArray[np.float32] | None:
+        """The scan cloud the database keeps for a landmark-poor scan (fewer than ``scan_cloud_below``
+        stored landmarks): its non-ground points (the extractor's ``last_cloud``) voxelised and capped
+        as raw-scan evidence uses them (``scan_voxel``, ``scan_max_points``), on the storage grid;
+        None otherwise. Why: landmark-poor pairs can then be verified on whole scans (verify.scan_pass)."""
+        if cloud_points is None or len(stored) >= self.config.verification.scan_cloud_below:
+            return None
+        v = self.config.matcher.verification
+        P = voxel_downsample(np.asarray(cloud_points, float).reshape(-1, 3), v.scan_voxel, v.scan_max_points)
+        return decode_points(encode_points(P)) if len(P) >= 10 else None
+
     def evidence_points(self, landmarks: LandmarkSet) -> NDArray[np.float32] | None:
         """The verified matcher's evidence cloud of a scan's landmarks (non-ground support points,
         its voxel size and cap), on the database's storage grid; None without points."""
@@ -107,6 +125,7 @@ class LoopDetector:
         """
         t0 = time.perf_counter()
         sc = None
+        cloud = None
         if isinstance(scan, LandmarkSet):
             ls = scan
         else:
@@ -118,6 +137,8 @@ class LoopDetector:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 ls = self.extractor.extract(points, labels)
+            if self.extractor.last_cloud is not None:
+                cloud = self.extractor.last_cloud.points
             if self.config.retrieval.method == "scan-context":
                 from graffmatch.evaluation.baselines.scan_context import scan_context
 
@@ -135,9 +156,11 @@ class LoopDetector:
             if position is None:
                 position = pose[:3, 3]
         ls, desc = self.prepare(ls)
+        stored_scan = self.stored_scan(ls, cloud)
         self._poses.append(pose)
         self.timings["extract"].append(time.perf_counter() - t0)
-        extra = {"scan_context": sc} if sc is not None else {}
+        extra: dict[str, Any] = {"scan_context": sc} if sc is not None else {}
+        extra["scan"] = stored_scan
         q = self.db.add(ls, desc, timestamp, position, **extra)
         if self.config.verification.quick_check:  # per-scan precomputation, with the extraction
             t_q = time.perf_counter()
@@ -185,8 +208,17 @@ class LoopDetector:
             P_t = np.random.default_rng(0).uniform([-30, -30, 0], [30, 30, 6], (1500, 3))
             T_s_t = invert(sc.T_target_source)
             P_s = P_t @ T_s_t[:3, :3].T + T_s_t[:3, 3]
-            verify_candidate(stored(sc.source, P_s), stored(sc.target, P_t), self.matcher, cfg.verification)
+            src, tgt = stored(sc.source, P_s), stored(sc.target, P_t)
+            verify_candidate(src, tgt, self.matcher, cfg.verification)
+            if cfg.verification.scan_cloud_below > 0:  # the raw-scan pass of landmark-poor pairs
+                scan_pass(src, tgt, decode_points(encode_points(P_s)), decode_points(encode_points(P_t)),
+                          self.matcher, cfg.verification)
         return time.perf_counter() - t0
+
+    def scan_of(self, i: int) -> NDArray[np.float32] | None:
+        """Scan i's stored scan cloud (None: it keeps none)."""
+        scans = self.db.extra.get("scan")
+        return None if scans is None or i >= len(scans) else scans[i]
 
     def quick_index(self, i: int) -> QuickIndex:
         """The BEV quick-check index of scan i, computed once and kept in the database."""
@@ -220,7 +252,7 @@ class LoopDetector:
         self.timings["retrieve"].append(t2 - t1)
         recs = verify_query(
             query, list(zip(idx.tolist(), dist.tolist(), strict=True)), self.db.landmarks.__getitem__,
-            self.quick_index, self.matcher, self.config.verification, self.config.quick,
+            self.quick_index, self.matcher, self.config.verification, self.config.quick, self.scan_of,
         )
         recs = self._consistent(query, recs)
         out = []

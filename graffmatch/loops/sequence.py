@@ -44,6 +44,7 @@ from graffmatch.loops.database import (
     POINT_QUANTUM_M,
     LandmarkDatabase,
     load_landmarks,
+    load_scan_cloud,
     save_landmarks,
 )
 from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig, warm_up_once
@@ -75,6 +76,9 @@ def _front_end_json(config: LoopDetectorConfig) -> str:
     if config.verification.evidence_points_below > 0:  # without points: the keys of tables without points
         v = config.matcher.verification
         front["evidence_points"] = [config.verification.evidence_points_below, v.voxel, v.max_points, POINT_QUANTUM_M]
+    if config.verification.scan_cloud_below > 0:  # without scan clouds: the keys of tables without them
+        v = config.matcher.verification
+        front["scan_cloud"] = [config.verification.scan_cloud_below, v.scan_voxel, v.scan_max_points, POINT_QUANTUM_M]
     return json.dumps(front, sort_keys=True)
 
 
@@ -97,12 +101,13 @@ def _extract_task(args: tuple[Dataset, int, str, str]) -> tuple[int, float]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         ls = det.extractor.extract(scan.points, labels)
+    cloud = None if det.extractor.last_cloud is None else det.extractor.last_cloud.points
     ls, _ = det.prepare(ls)
     if config.retrieval.method == "scan-context":
         from graffmatch.evaluation.baselines.scan_context import scan_context
 
         np.save(out_file.replace(".npz", ".sc.npy"), scan_context(scan.points[:, :3]).astype(np.float32))
-    save_landmarks(out_file, ls)
+    save_landmarks(out_file, ls, det.stored_scan(ls, cloud))
     return i, time.perf_counter() - t0
 
 
@@ -120,12 +125,14 @@ class _ScanCache:
         self.max_scans = max_scans
         self.landmarks: OrderedDict[int, Any] = OrderedDict()
         self.quick: OrderedDict[int, QuickIndex] = OrderedDict()
+        self.scans: OrderedDict[int, Any] = OrderedDict()
 
     def reset(self, key: tuple[str, str]) -> None:
         if key != self.key:
             self.key = key
             self.landmarks.clear()
             self.quick.clear()
+            self.scans.clear()
 
     def get(self, store: OrderedDict, i: int, make: Callable[[], Any]) -> Any:
         """``store[i]``, made by ``make()`` on a miss."""
@@ -153,6 +160,9 @@ def _verify_task(args: tuple[str, str, str, list[tuple[int, list[tuple[int, floa
     def lm(i: int):
         return _CACHE.get(_CACHE.landmarks, i, lambda: load_landmarks(Path(out_dir) / LANDMARK_DIR / f"{i:06d}.npz"))
 
+    def scan(i: int):
+        return _CACHE.get(_CACHE.scans, i, lambda: load_scan_cloud(Path(out_dir) / LANDMARK_DIR / f"{i:06d}.npz"))
+
     def qi(i: int) -> QuickIndex:
         # per-scan precomputation (like the landmarks themselves): timed apart from the query
         t, hit = time.perf_counter(), i in _CACHE.quick
@@ -165,10 +175,13 @@ def _verify_task(args: tuple[str, str, str, list[tuple[int, list[tuple[int, floa
     for q, cands in chunk:
         for j in [q, *(c for c, _ in cands)]:  # load and index before the query's clock starts
             lm(j)
+            if config.verification.scan_cloud_below > 0:
+                scan(j)
             if config.verification.quick_check:
                 qi(j)
         t0, c0 = time.perf_counter(), time.process_time()
-        recs = verify_query(q, cands, lm, qi, det.matcher, config.verification, config.quick)
+        recs = verify_query(q, cands, lm, qi, det.matcher, config.verification, config.quick,
+                            scan if config.verification.scan_cloud_below > 0 else None)
         records.append({"query": int(q), "candidates": recs, "verify_s": time.perf_counter() - t0, "verify_cpu_s": time.process_time() - c0})
     if records:
         records[-1]["index_s"] = index_s[0]
@@ -322,7 +335,7 @@ def build_database(
         ls = load_landmarks(lm_dir / f"{i:06d}.npz")
         from graffmatch.loops.descriptor import landmark_descriptor
 
-        extra = {}
+        extra = {"scan": load_scan_cloud(lm_dir / f"{i:06d}.npz") if config.verification.scan_cloud_below > 0 else None}
         if config.retrieval.method == "scan-context":
             extra["scan_context"] = np.load(lm_dir / f"{i:06d}.sc.npy")
         db.add(ls, landmark_descriptor(ls, config.descriptor), float(times[i]), **extra)
@@ -450,6 +463,8 @@ def run_loops(
         "verify_cpu_ms_per_query": 1e3 * sum(r.get("verify_cpu_s", 0.0) for r in done.values()) / max(len(done), 1),
         "verify_wall_s": verify_wall,
         "database_bytes_per_scan": db.bytes_per_scan(),
+        "database_bytes_max_scan": int(db.stored_bytes().max()) if n else 0,
+        "scans_with_scan_cloud": sum(x is not None for x in db.extra.get("scan", [])),
         "total_wall_s": time.perf_counter() - t_start,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2))

@@ -25,6 +25,8 @@ from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_check_many
 from graffmatch.matcher import GraffMatcher
 from graffmatch.pipeline import ScanMatcher
+from graffmatch.verification.free_space import cell_minimum_ranges
+from graffmatch.verification.verify import scan_evidence
 
 #: Defaults chosen on the calibration drives (other seeds of the benchmark's environments), never on
 #: the reported ones: bench/loops_calibration.py, bench/results/loops_calibration.json.
@@ -51,6 +53,13 @@ CONSISTENCY_WINDOW = 2
 CONSISTENCY_MIN_AGREEING = 4
 CONSISTENCY_MAX_M = 0.5
 CONSISTENCY_MAX_DEG = 2.0
+#: Raw-scan evidence for landmark-poor scans (session 15): scans with fewer landmarks than this keep
+#: their scan cloud; a pair of two such scans that the landmark rule does not accept is verified again
+#: on the clouds and is a loop when that verdict is valid with at least this confidence and this many
+#: agreeing landmarks. PROVISIONAL until chosen on the calibration drives.
+SCAN_CLOUD_BELOW = 0
+SCANS_MIN_CONFIDENCE = 0.9
+SCANS_MIN_AGREEING = 2
 
 
 class VerificationConfig(BaseModel):
@@ -128,6 +137,30 @@ class VerificationConfig(BaseModel):
     )
     consistency_max_deg: float = Field(
         CONSISTENCY_MAX_DEG, gt=0, description="largest rotation disagreement of two consistent loops [deg]"
+    )
+    scan_cloud_below: int = Field(
+        SCAN_CLOUD_BELOW,
+        ge=0,
+        description="a scan with fewer landmarks than this also keeps its scan cloud (the extractor's non-ground "
+        "voxel cloud at the matcher's scan_voxel / scan_max_points, quantised like the evidence points) in the "
+        "database; a pair of two such scans that the landmark rule does not accept is verified again on the "
+        "clouds (raw-scan evidence, verification.verify.scan_evidence) and is a loop by scans_min_confidence / "
+        "scans_min_agreeing; 0: off",
+    )
+    scans_min_confidence: float = Field(
+        SCANS_MIN_CONFIDENCE, ge=0, le=1,
+        description="a pair verified on the scan clouds is a loop when that verdict is valid with at least this "
+        "confidence (then its confidence is the loop's)",
+    )
+    scans_min_agreeing: int = Field(
+        SCANS_MIN_AGREEING, ge=0,
+        description="... and at least this many of the query's landmarks agree under its transform",
+    )
+    scans_skip_quick_check: bool = Field(
+        False,
+        description="verify candidates whose two scans keep scan clouds even when the quick check rejects "
+        "them (after the passing ones, within max_verified): a landmark-poor scan's BEV map has two or three "
+        "entries, too few to vote on",
     )
     max_landmarks_per_type: int | None = Field(
         40, ge=2, description="match at most this many landmarks of a type (largest first)"
@@ -262,6 +295,84 @@ def loop_confidence(
     return float(np.clip(conf, 0.0, 1.0))
 
 
+def scans_loop_confidence(
+    scan_valid: bool, scan_confidence: float | None, n_agreeing: int, distance_m: float, config: VerificationConfig
+) -> float:
+    """The confidence of a pair verified again on the two scan clouds (0: not a loop): the raw-scan
+    verdict's own confidence when it is valid, reaches ``scans_min_confidence``, has
+    ``scans_min_agreeing`` agreeing landmarks and lies inside the place radius less the margin.
+    One rule for ``graffmatch loops``, :class:`LoopDetector`, the benchmark and the calibration."""
+    if not scan_valid or scan_confidence is None or scan_confidence < config.scans_min_confidence:
+        return 0.0
+    if n_agreeing < config.scans_min_agreeing:
+        return 0.0
+    if config.max_translation_m is not None and distance_m > config.max_translation_m - config.place_margin_m:
+        return 0.0
+    return float(np.clip(scan_confidence, 0.0, 1.0))
+
+
+def _verification_config(matcher: GraffMatcher | ScanMatcher):
+    """The verified matcher's own verification settings (scan_voxel, scan_max_points, ...)."""
+    cfg = matcher.config
+    return cfg.matcher.verification if isinstance(matcher, ScanMatcher) else cfg.verification
+
+
+def _with_scan_ranges(ls: LandmarkSet, scan: NDArray) -> LandmarkSet:
+    """``ls`` (same arrays) carrying the range image of its scan cloud as ``scan_ranges``.
+
+    Why: free space from the support points alone is a sparse image in which every surface the
+    extractor did not make a landmark (a parked car, a tree) looks transparent; a right pose then
+    puts the other scan's cloud "in free space" (20-30 % conflicts on right pairs of a calibration
+    drive, docs/loops.md session 15). The scan cloud's own nearest return per cell is the
+    whole-scan image raw-scan evidence was calibrated with (ground cells unknown: no free space
+    claimed there). Only the scan pass sees it; the landmark pass keeps its calibrated image."""
+    if ls.sensor_pose is None:
+        return ls
+    return LandmarkSet(ls.types, ls.bases, ls.anchors, ls.attributes, ls.points, ls.point_offsets, validate=False,
+                       sensor_pose=ls.sensor_pose, scan_ranges=cell_minimum_ranges(np.asarray(scan, float)))
+
+
+def scan_pass(
+    query: LandmarkSet,
+    candidate: LandmarkSet,
+    query_scan: NDArray,
+    candidate_scan: NDArray,
+    matcher: GraffMatcher | ScanMatcher,
+    config: VerificationConfig,
+) -> dict:
+    """Match ``query`` to ``candidate`` again, verified on their stored scan clouds (the raw-scan
+    evidence of ``ScanMatcher(evidence='support_then_scans')``: the same ``scan_evidence`` and
+    ``match(..., evidence=)`` path, at ``VerificationConfig.scans``' thresholds).
+
+    Returns scan_valid, scan_confidence, scan_T (or None), scan_n_agreeing, scan_overlap,
+    scan_message, scan_seconds. Why: a landmark-poor pair cannot show the agreeing landmarks the
+    landmark rule wants, however right its pose; the whole scans can show it is right."""
+    t0 = time.perf_counter()
+    out = {"scan_valid": False, "scan_confidence": None, "scan_T": None, "scan_n_agreeing": 0,
+           "scan_overlap": 0.0, "scan_message": ""}
+    query, candidate = _with_scan_ranges(query, query_scan), _with_scan_ranges(candidate, candidate_scan)
+    ev = scan_evidence(query, candidate, np.asarray(query_scan, float), np.asarray(candidate_scan, float),
+                       _verification_config(matcher))
+    if ev.kind != "scans":
+        out["scan_message"] = "too few scan points"
+    else:
+        try:
+            res = matcher.match(query, candidate, evidence=ev)
+        except GraffMatchError as exc:
+            res = None
+            out["scan_message"] = str(exc)
+        if res is not None:
+            out.update(scan_valid=bool(res.valid), scan_message=res.message)
+            mconf = getattr(res, "confidence", None)
+            out["scan_confidence"] = None if mconf is None else float(mconf)
+            if res.T_target_source is not None:
+                T = np.asarray(res.T_target_source, float)
+                n_agree, overlap = landmark_agreement(query, candidate, T, config)
+                out.update(scan_T=T, scan_n_agreeing=n_agree, scan_overlap=float(overlap))
+    out["scan_seconds"] = time.perf_counter() - t0
+    return out
+
+
 def quick_gate(score: int, fraction: float, translation_m: float, config: VerificationConfig) -> bool:
     """Whether a candidate with this quick-check result goes on to the verified matcher."""
     if fraction < config.quick_min_fraction:
@@ -280,11 +391,17 @@ def verify_candidate(
     candidate: LandmarkSet,
     matcher: GraffMatcher | ScanMatcher,
     config: VerificationConfig,
+    query_scan: NDArray | None = None,
+    candidate_scan: NDArray | None = None,
 ) -> dict:
     """Match ``query`` (source) to ``candidate`` (target) and score the estimate.
 
     Returns a dict: T_match_query (or None), confidence, overlap, n_associations, n_agreeing,
     matcher_valid, matcher_confidence, on_points (both sets carry evidence points), message, seconds.
+    With both scan clouds given (landmark-poor scans, ``scan_cloud_below``) and the landmark rule
+    not accepting, the pair is verified again on them (:func:`scan_pass`, its fields added); when
+    :func:`scans_loop_confidence` accepts, T_match_query and confidence are the scan pass's
+    (``on_scans`` True) and the landmark pass's transform stays in ``support_T``.
     """
     t0 = time.perf_counter()
     on_points = query.points is not None and candidate.points is not None
@@ -324,6 +441,14 @@ def verify_candidate(
             bool(res.valid), out["matcher_confidence"], n_agree, float(overlap),
             float(np.linalg.norm(T[:3, 3])), config, on_points,
         )
+    if query_scan is not None and candidate_scan is not None and out["confidence"] < config.min_confidence:
+        sp = scan_pass(query, candidate, query_scan, candidate_scan, matcher, config)
+        out.update(sp)
+        sT = sp["scan_T"]
+        sconf = 0.0 if sT is None else scans_loop_confidence(
+            sp["scan_valid"], sp["scan_confidence"], sp["scan_n_agreeing"], float(np.linalg.norm(sT[:3, 3])), config)
+        if sconf >= config.min_confidence and sconf > out["confidence"]:
+            out.update(support_T=out["T_match_query"], T_match_query=sT, confidence=sconf, on_scans=True)
     out["seconds"] = time.perf_counter() - t0
     return out
 
@@ -336,6 +461,7 @@ def verify_query(
     matcher: GraffMatcher | ScanMatcher,
     config: VerificationConfig,
     quick_config: QuickCheckConfig | None = None,
+    scan_of: Callable[[int], NDArray | None] | None = None,
 ) -> list[dict]:
     """Pre-screen and verify the retrieved candidates of one query; one record a candidate.
 
@@ -344,7 +470,11 @@ def verify_query(
     :func:`quick_gate` are verified, best quick score first; with ``stop_when_accepted``
     verification stops at the first accepted candidate. Records keep the retrieval order
     (``rank``); skipped candidates have ``verified`` False and no ``T``; a record's ``seconds``
-    holds its share of the batched quick check plus its verification.
+    holds its share of the batched quick check plus its verification. ``scan_of(i)``: scan i's stored
+    scan cloud or None (landmark-poor scans keep one): a pair of two such scans is verified again
+    on them when the landmark rule does not accept it (:func:`verify_candidate`), and with
+    ``scans_skip_quick_check`` it is verified even when the quick check rejected it (after the
+    passing candidates).
     """
     recs: list[dict] = []
     for rank, (j, dist) in enumerate(candidates):
@@ -364,10 +494,18 @@ def verify_query(
             rec.update(quick_score=score, quick_fraction=float(frac),
                        quick_translation_m=float(np.hypot(e[1], e[2])), seconds=share)
             rec["quick_pass"] = quick_gate(score, frac, rec["quick_translation_m"], config)
+    qscan = None if scan_of is None else scan_of(query)
+    scan = {r["match"]: (None if qscan is None else scan_of(r["match"])) for r in recs}  # type: ignore[misc]
+    if qscan is not None and config.scans_skip_quick_check:
+        for r in recs:
+            if not r["quick_pass"] and scan[r["match"]] is not None:
+                r["quick_pass_scans"] = True
     order = sorted((r for r in recs if r["quick_pass"]), key=lambda r: (-r["quick_score"], r["rank"]))
+    order += sorted((r for r in recs if r.get("quick_pass_scans")), key=lambda r: (-r["quick_score"], r["rank"]))
     order = order[: config.max_verified]
     for rec in order:
-        v = verify_candidate(landmarks_of(query), landmarks_of(rec["match"]), matcher, config)
+        v = verify_candidate(landmarks_of(query), landmarks_of(rec["match"]), matcher, config,
+                             qscan, scan[rec["match"]])
         T = v["T_match_query"]
         rec.update(
             T=None if T is None else np.asarray(T).ravel().tolist(), confidence=v["confidence"],
@@ -376,6 +514,13 @@ def verify_query(
             verify_seconds=v["seconds"], matcher_valid=v["matcher_valid"],
             matcher_confidence=v["matcher_confidence"], on_points=v["on_points"],
         )
+        if "scan_valid" in v:
+            rec.update({k: v[k] for k in ("scan_valid", "scan_confidence", "scan_n_agreeing", "scan_overlap",
+                                          "scan_message", "scan_seconds")})
+            rec["scan_T"] = None if v["scan_T"] is None else np.asarray(v["scan_T"]).ravel().tolist()
+        if v.get("on_scans"):
+            rec["on_scans"] = True
+            rec["support_T"] = None if v["support_T"] is None else np.asarray(v["support_T"]).ravel().tolist()
         if config.stop_when_accepted and v["confidence"] >= config.min_confidence:
             break
     return recs
