@@ -73,7 +73,7 @@ def main() -> None:
     from graffmatch.datasets.registry import open_dataset
     from graffmatch.evaluation.sequence_benchmark import benchmark_config
     from graffmatch.geometry.pose_files import read_kitti
-    from graffmatch.loops.database import LandmarkDatabase, load_landmarks
+    from graffmatch.loops.database import LandmarkDatabase, load_landmarks, load_scan_cloud
     from graffmatch.loops.descriptor import landmark_descriptor
     from graffmatch.loops.detector import LoopDetector
     from graffmatch.loops.quickcheck import quick_index
@@ -97,7 +97,8 @@ def main() -> None:
         stamps = np.asarray(open_dataset("folder", src).timestamps, float)
         for i, f in enumerate(files):
             ls = load_landmarks(f)
-            db.add(ls, landmark_descriptor(ls, base.descriptor), float(stamps[i]))
+            # the scan cloud of a landmark-poor scan, when the run kept one (scan_cloud_below, session 15)
+            db.add(ls, landmark_descriptor(ls, base.descriptor), float(stamps[i]), scan=load_scan_cloud(f))
         db.extra["quick"] = [quick_index(ls, base.quick) for ls in db.landmarks]
         poses = None
         if args.odometry:
@@ -125,7 +126,7 @@ def main() -> None:
             warm = (time.perf_counter() - t_w, time.process_time() - c_w)
             qs = [q for q in range(0, len(db), args.stride) if eligible_count(db.timestamps, q, cfg.retrieval) > 0]
             per, cpu, ver_s, nver, nloop = [], [], [], [], 0
-            ret_s, quick_s, npass, ncand, nver_pts = [], [], [], [], []
+            ret_s, quick_s, npass, ncand, nver_pts, nscan = [], [], [], [], [], []
             load_a = os.getloadavg()[0]
             for q in qs:
                 c0 = time.process_time()
@@ -142,13 +143,15 @@ def main() -> None:
                 nloop += bool(loops)
                 ncand.append(len(recs))
                 nver_pts.append(sum(bool(r.get("on_points")) for r in recs if r["verified"]))
+                nscan.append(sum("scan_valid" in r for r in recs if r["verified"]))
                 if rec_f:
                     rec_f.write(json.dumps({
                         "drive": drive, "mode": mode, "query": q, "ms": 1e3 * per[-1], "cpu_ms": 1e3 * cpu[-1],
                         "retrieve_ms": 1e3 * ret_s[-1], "quick_ms": 1e3 * quick_s[-1], "loop": bool(loops),
                         "candidates": len(recs), "quick_passing": npass[-1],
                         "verified": [{"match": r["match"], "rank": r["rank"], "on_points": bool(r.get("on_points")),
-                                      "ms": 1e3 * r.get("verify_seconds", 0.0), "confidence": r["confidence"]}
+                                      "ms": 1e3 * r.get("verify_seconds", 0.0), "confidence": r["confidence"],
+                                      "scan_pass": "scan_valid" in r, "on_scans": bool(r.get("on_scans"))}
                                      for r in recs if r["verified"]]}) + "\n")
             per_a, ver_a = 1e3 * np.asarray(per), 1e3 * np.asarray(ver_s)
             row = {"drive": drive, "mode": mode, "queries": len(qs), "ms_per_query_mean": float(per_a.mean()),
@@ -167,6 +170,8 @@ def main() -> None:
                    "cpu_ms_per_query_max": 1e3 * float(np.max(cpu)),
                    "candidates_per_query": float(np.mean(ncand)), "candidates_per_query_max": int(np.max(ncand)),
                    "verified_on_points_per_query": float(np.mean(nver_pts)),
+                   "scan_passes_per_query": float(np.mean(nscan)),
+                   "scans_with_scan_cloud": sum(x is not None for x in db.extra["scan"]),
                    "retriever": cfg.retrieval.method if poses is not None else "descriptor (no positions)",
                    "odometry": None if poses is None else str(odo),
                    "warmup_s": warm[0], "warmup_cpu_s": warm[1],

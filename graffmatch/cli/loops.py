@@ -90,6 +90,11 @@ def loops(
         int | None,
         typer.Option(min=0, help="Scans with fewer landmarks keep their evidence points in the database (0: none)."),
     ] = None,
+    scan_cloud_below: Annotated[
+        int | None,
+        typer.Option(min=0, help="Scans with fewer landmarks also keep their scan cloud; pairs of two such scans "
+                     "are verified again on it (raw-scan evidence; 0: none)."),
+    ] = None,
     optimize: Annotated[bool, typer.Option(help="Pose graph with GTSAM; KITTI/TUM trajectories, ATE/RPE.")] = False,
     odometry: Annotated[
         str, typer.Option(help="Odometry for --optimize/radius: drift | gt | kiss-icp | PATH (KITTI poses).")
@@ -136,6 +141,8 @@ def loops(
         cfg.verification.place_margin_m = place_margin
     if evidence_points_below is not None:
         cfg.verification.evidence_points_below = evidence_points_below
+    if scan_cloud_below is not None:
+        cfg.verification.scan_cloud_below = scan_cloud_below
     cfg.verification.quick_check = quick_check
     cfg.verification.stop_when_accepted = not all_loops
     cfg = LoopDetectorConfig.model_validate(cfg.model_dump())

@@ -216,9 +216,12 @@ class LoopDetector:
         return time.perf_counter() - t0
 
     def scan_of(self, i: int) -> NDArray[np.float32] | None:
-        """Scan i's stored scan cloud (None: it keeps none)."""
+        """Scan i's stored scan cloud (None: it keeps none, or has ``scan_cloud_below`` landmarks or
+        more: a database stored with a larger setting verifies as this config says)."""
         scans = self.db.extra.get("scan")
-        return None if scans is None or i >= len(scans) else scans[i]
+        if scans is None or i >= len(scans) or len(self.db.landmarks[i]) >= self.config.verification.scan_cloud_below:
+            return None
+        return scans[i]
 
     def quick_index(self, i: int) -> QuickIndex:
         """The BEV quick-check index of scan i, computed once and kept in the database."""

@@ -16,7 +16,6 @@ from graffmatch.loops.database import (
     POINT_QUANTUM_M,
     decode_points,
     encode_points,
-    landmarks_to_bytes,
     load_landmarks,
     load_scan_cloud,
     save_landmarks,
