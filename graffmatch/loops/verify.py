@@ -53,13 +53,18 @@ CONSISTENCY_WINDOW = 2
 CONSISTENCY_MIN_AGREEING = 4
 CONSISTENCY_MAX_M = 0.5
 CONSISTENCY_MAX_DEG = 2.0
-#: Raw-scan evidence for landmark-poor scans (session 15): scans with fewer landmarks than this keep
-#: their scan cloud; a pair of two such scans that the landmark rule does not accept is verified again
-#: on the clouds and is a loop when that verdict is valid with at least this confidence and this many
-#: agreeing landmarks. PROVISIONAL until chosen on the calibration drives.
-SCAN_CLOUD_BELOW = 0
-SCANS_MIN_CONFIDENCE = 0.9
+#: Raw-scan evidence for landmark-poor scans (session 15): scans with fewer than 8 landmarks keep their
+#: scan cloud; a pair of two such scans that the landmark rule does not accept is verified again on the
+#: clouds and is a loop when that verdict is valid with confidence >= 0.99 and >= 2 agreeing landmarks;
+#: such pairs are verified even when the quick check rejects them. Chosen on the calibration drives
+#: (bench/loops_calibration_scans.py, bench/results/loops_calibration_scans_session15.json: the most
+#: summed e2e recall at 100 % precision with no wrong loop under the policy, none accepted by the scan
+#: rule among every verified candidate, and <= 5 kB a scan on average; K = 12 gave one more query but
+#: 6.3 kB a scan on downtown 4).
+SCAN_CLOUD_BELOW = 8
+SCANS_MIN_CONFIDENCE = 0.99
 SCANS_MIN_AGREEING = 2
+SCANS_SKIP_QUICK_CHECK = True
 
 
 class VerificationConfig(BaseModel):
@@ -145,7 +150,7 @@ class VerificationConfig(BaseModel):
         "voxel cloud at the matcher's scan_voxel / scan_max_points, quantised like the evidence points) in the "
         "database; a pair of two such scans that the landmark rule does not accept is verified again on the "
         "clouds (raw-scan evidence, verification.verify.scan_evidence) and is a loop by scans_min_confidence / "
-        "scans_min_agreeing; 0: off",
+        "scans_min_agreeing; 0: off (8: chosen on the calibration drives, bench/loops_calibration_scans.py)",
     )
     scans_min_confidence: float = Field(
         SCANS_MIN_CONFIDENCE, ge=0, le=1,
@@ -157,7 +162,7 @@ class VerificationConfig(BaseModel):
         description="... and at least this many of the query's landmarks agree under its transform",
     )
     scans_skip_quick_check: bool = Field(
-        False,
+        SCANS_SKIP_QUICK_CHECK,
         description="verify candidates whose two scans keep scan clouds even when the quick check rejects "
         "them (after the passing ones, within max_verified): a landmark-poor scan's BEV map has two or three "
         "entries, too few to vote on",

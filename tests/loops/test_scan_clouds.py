@@ -116,3 +116,15 @@ def test_scans_loop_confidence_rule():
     assert scans_loop_confidence(True, 0.95, 1, 3.0, cfg) == 0.0
     assert scans_loop_confidence(True, 0.95, 2, 4.8, cfg) == 0.0  # beyond 5 m - 0.25 m
     assert scans_loop_confidence(True, 0.95, 2, 40.0, cfg.model_copy(update={"max_translation_m": None})) > 0
+
+
+def test_defaults_are_the_calibrated_scan_rule():
+    """Session 15's choice on the calibration drives (bench/loops_calibration_scans.py): clouds for
+    scans with < 8 landmarks, scan verdicts from confidence 0.99 with 2 agreeing landmarks, cloud
+    pairs verified past the quick check; ScanMatcher's own default evidence stays the support points."""
+    from graffmatch.pipeline import ScanMatcherConfig
+
+    v = VerificationConfig()
+    assert (v.scan_cloud_below, v.scans_min_confidence, v.scans_min_agreeing, v.scans_skip_quick_check) == (
+        8, 0.99, 2, True)
+    assert ScanMatcherConfig().evidence == "support"
