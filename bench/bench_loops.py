@@ -158,6 +158,9 @@ def main() -> None:
                     "bench/loops_calibration_union.py), or 'off' for the descriptor alone; the courtyard has no "
                     "odometry, so descriptor only there")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--verification", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="override VerificationConfig fields of our detector (a labelled variant, e.g. "
+                    "scans_skip_quick_check=false; values parsed as JSON)")
     ap.add_argument("--merge", type=Path, nargs="+", default=None,
                     help="only merge the results.json of these --out folders (same scans, methods run "
                     "in separate processes) into one table and --json; FOLDER::PREFIX,... keeps only the "
@@ -189,6 +192,9 @@ def main() -> None:
         groups = [([p for p in seqs if p.name != "balm_courtyard"], True),
                   ([p for p in seqs if p.name == "balm_courtyard"], False)]
     config = benchmark_config()
+    for kv in args.verification:  # a labelled variant of the defaults
+        key, val = kv.split("=", 1)
+        setattr(config.verification, key, json.loads(val))
     if args.union == "off":
         config.retrieval.method = "descriptor"  # the default before session 10's end
     elif args.union:

@@ -64,6 +64,9 @@ def main() -> None:
                     help="'kiss-icp' (<runs>/<raw drive>/kiss_icp_kitti.txt) or a KITTI pose file: positions and "
                     "poses for the descriptor+radius retriever and sequence consistency")
     ap.add_argument("--records", type=Path, default=None, help="one JSON line per timed query")
+    ap.add_argument("--verification", nargs="+", default=[], metavar="KEY=VALUE",
+                    help="override VerificationConfig fields of our detector (a labelled variant, e.g. "
+                    "scans_skip_quick_check=false; values parsed as JSON)")
     args = ap.parse_args()
 
     import json
@@ -91,6 +94,9 @@ def main() -> None:
             print(drive, len(files), "scans")
             continue
         base = benchmark_config()
+        for kv in args.verification:  # a labelled variant of the defaults
+            key, val = kv.split("=", 1)
+            setattr(base.verification, key, json.loads(val))
         db = LandmarkDatabase()
         # a de-skewed drive (bench_loops.py --deskew: "<name>+deskew") has its raw drive's times
         src = COURTYARD if drive == "balm_courtyard" else args.data / drive.removesuffix("+deskew")
