@@ -257,6 +257,8 @@ def run_pairs(src: dict, pairs: list[dict], cfg: GraffMatchConfig) -> list[dict]
         row["slide"] = float(r.info.get("slide_ratio", 0.0))
         row["conflict"] = float(max(r.info.get("free_space_conflict", (0.0, 0.0))))
         row["evidence"] = r.info.get("evidence_source")
+        row["view"] = float(min(r.info.get("view_coverage", (1.0, 1.0))))  # partial views: session 15
+        row["view_problem"] = " view: coverage" in r.message
         row["T"] = None if r.T_target_source is None else np.asarray(r.T_target_source).tolist()
         row["correct"] = False
         if p["ds"] == p["ds2"] and r.T_target_source is not None:  # far pairs too: judged by pose

@@ -297,7 +297,7 @@ def _verified_once(source, target, graph, W, sol, cfg: GraffMatchConfig, vcfg, v
     common["info"].update(origin=best.origin, rival_ratio=verdict.rival_ratio,
                           score_parts=best.score_parts, clipper_selected=len(sol.selected))
     for key in ("free_space_conflict", "free_space_image", "search", "wide_differs", "verified_overlap",
-                "evidence_source"):
+                "evidence_source", "view_coverage", "covisible_overlap"):
         if key in best.info:
             common["info"][key] = best.info[key]
     if "slide_ratio" in best.info:

@@ -22,6 +22,14 @@ LINES_ONLY = (0.2, 0.875, 0.18, 0.85)
 SCANS = (0.05, 0.775, 0.08)
 SCANS_CONFIDENCE = (-4.504, 29.926, 12.028, -46.712)
 
+#: partial views (co-visible overlap, rival ratio) for views in [0.5, 0.9) and below 0.5, support
+#: points and raw scans: chosen by the support points' rule (most recall with precision >= 99.5 % on
+#: each recording, no valid wrong negative; ties: the stricter) on cropped pairs of the calibration
+#: split, courtyard and the three simulated drives (bench/verification_partial_views.py --split cal
+#: --sims --open; bench/results/partial_views_cal_open_session15.json; docs/verification.md, Session 15)
+PARTIAL, NARROW = (0.325, 0.85), (0.275, 0.45)
+SCANS_PARTIAL, SCANS_NARROW = (0.175, 0.75), (0.175, 0.775)
+
 
 class DecisionThresholds(BaseModel):
     """The decision's thresholds for one matching mode (what ``VerificationConfig`` holds for
@@ -38,12 +46,26 @@ class DecisionThresholds(BaseModel):
     confidence_coef: tuple[float, float, float, float] | None = Field(
         None, description="the confidence's logistic coefficients for this mode (None: VerificationConfig's)"
     )
+    partial_min_overlap: float | None = Field(
+        None, ge=0, le=1, description="partial views: co-visible overlap needed (None: VerificationConfig's)"
+    )
+    partial_max_rival_ratio: float | None = Field(
+        None, gt=0, le=1, description="partial views: rival ratio allowed (None: VerificationConfig's)"
+    )
+    narrow_min_overlap: float | None = Field(
+        None, ge=0, le=1, description="narrow views: co-visible overlap needed (None: VerificationConfig's)"
+    )
+    narrow_max_rival_ratio: float | None = Field(
+        None, gt=0, le=1, description="narrow views: rival ratio allowed (None: VerificationConfig's)"
+    )
 
     def thresholds(self) -> dict:
         """The fields a :class:`VerificationConfig` takes over (the confidence only when set)."""
         d = self.model_dump()
-        if d["confidence_coef"] is None:
-            del d["confidence_coef"]
+        for key in ("confidence_coef", "partial_min_overlap", "partial_max_rival_ratio", "narrow_min_overlap",
+                    "narrow_max_rival_ratio"):
+            if d[key] is None:
+                del d[key]
         return d
 
 
@@ -195,6 +217,35 @@ class VerificationConfig(BaseModel):
         "nothing pins the translation (None: not checked; the lines-only decision sets it)",
     )
     slide_m: float = Field(1.5, gt=0, description="... the starts' distance [m]")
+    view_check: bool = Field(
+        True,
+        description="partial views (verification/view.py): the view of a pair is the smaller azimuth coverage of "
+        "its two scans (the share of 1 deg azimuth cells of the whole-scan range image, LandmarkSet.scan_ranges, "
+        "that hold a return). Below view_whole the winner must also pass a co-visible overlap (each direction "
+        "counted only over the points inside the other scan's observed azimuths) and a rival ratio of its tier "
+        "(partial_*: view in [view_narrow, view_whole); narrow_*: below view_narrow). Whole-scan pairs, and sets "
+        "without scan_ranges (view unknown), are decided as before. Thresholds chosen on courtyard and simulated "
+        "partial views of the calibration split (bench/verification_partial_views.py --split cal; "
+        "docs/verification.md, Session 15)",
+    )
+    view_whole: float = Field(
+        0.9, ge=0, le=1,
+        description="... a pair whose view is at least this is a whole-scan pair (every whole scan of "
+        "bench/verification.py's five recordings covers >= 0.95; a 270 deg sector 0.75)",
+    )
+    view_narrow: float = Field(0.5, ge=0, le=1, description="... below this (a sector under 180 deg) a narrow view")
+    partial_min_overlap: float = Field(
+        PARTIAL[0], ge=0, le=1, description="... views in [view_narrow, view_whole): the co-visible overlap needed",
+    )
+    partial_max_rival_ratio: float = Field(
+        PARTIAL[1], gt=0, le=1, description="... views in [view_narrow, view_whole): the rival ratio allowed",
+    )
+    narrow_min_overlap: float = Field(
+        NARROW[0], ge=0, le=1, description="... views below view_narrow: the co-visible overlap needed",
+    )
+    narrow_max_rival_ratio: float = Field(
+        NARROW[1], gt=0, le=1, description="... views below view_narrow: the rival ratio allowed",
+    )
     min_landmark_overlap: float = Field(
         0.2, ge=0, le=1, description="without support points: graded share of landmarks with a counterpart"
     )
@@ -223,7 +274,9 @@ class VerificationConfig(BaseModel):
 
     scans: DecisionThresholds | None = Field(
         default_factory=lambda: DecisionThresholds(
-            min_overlap=SCANS[0], max_rival_ratio=SCANS[1], max_conflict=SCANS[2], confidence_coef=SCANS_CONFIDENCE),
+            min_overlap=SCANS[0], max_rival_ratio=SCANS[1], max_conflict=SCANS[2], confidence_coef=SCANS_CONFIDENCE,
+            partial_min_overlap=SCANS_PARTIAL[0], partial_max_rival_ratio=SCANS_PARTIAL[1],
+            narrow_min_overlap=SCANS_NARROW[0], narrow_max_rival_ratio=SCANS_NARROW[1]),
         description="replace min_overlap / max_rival_ratio / max_conflict (and the confidence) when the "
         "evidence is the raw scans' voxel clouds (ScanMatcher's evidence='support_then_scans'); chosen on the "
         "calibration split of bench/verification.py --evidence scans (None: the support points' thresholds)",

@@ -67,6 +67,17 @@ class SupportCloud:
     _occ_table_voxel: float = field(default=0.0, repr=False)
     _range_images: dict = field(default_factory=dict, repr=False)
     _samples: dict = field(default_factory=dict, repr=False)
+    _view: tuple | None = field(default=None, repr=False)
+
+    def view_mask(self) -> NDArray[np.bool_] | None:
+        """Which azimuth cells of the whole-scan range image hold a return (``view.azimuth_mask``,
+        built once; None without ``scan_ranges`` or sensor pose: the view is unknown)."""
+        if self._view is None:
+            from graffmatch.verification.view import azimuth_mask
+
+            mask = None if self.sensor_pose is None else azimuth_mask(self.scan_ranges)
+            self._view = (mask,)
+        return self._view[0]
 
     def __len__(self) -> int:
         return len(self.points)

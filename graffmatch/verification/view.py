@@ -1,0 +1,83 @@
+"""View coverage: how much of the place around its sensor a scan saw, and the overlap counted
+only where both scans looked.
+
+The decision's thresholds were chosen on whole 360 deg scans. When one scan sees only a sector
+(occlusion, a sensor's field of view, a cropped map), two things change: a wrong answer needs
+to explain only the few structures of that sector, so slides along a wall and 180 deg flips
+reach whole-scan overlaps and margins (real courtyard pairs cut to 90-180 deg: 5 of 66 valid
+answers wrong, docs/verification.md, Session 14); and a right answer's overlap is diluted,
+because the whole scan's points outside the other's sector cannot be explained at all.
+
+* :func:`azimuth_mask`: which 1 deg azimuth cells of a scan's whole-scan range image
+  (``LandmarkSet.scan_ranges``, sensor frame) hold a return; its mean is the scan's
+  **coverage** (about 1 for a whole scan, the sector's share for a cropped one). Computed once
+  per evidence cloud (:meth:`SupportCloud.view_mask`).
+* :func:`covisible_overlap`: each direction's share of explained points counted only over the
+  points that the hypothesis puts inside the other scan's observed azimuth cells: on a partial
+  view a right answer is not diluted by what the other sensor never looked at, and a wrong one
+  must explain what the other scan saw where it looked.
+
+``verify._check_view`` applies stricter thresholds to pairs whose smaller coverage is below
+``VerificationConfig.view_whole``; whole-scan pairs are decided exactly as before.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graffmatch.geometry.transforms import invert
+
+
+def azimuth_mask(scan_ranges: NDArray | None) -> NDArray[np.bool_] | None:
+    """(n_azimuth,) True where the whole-scan range image holds a return in any elevation cell
+    (None without an image). Cell ``a`` covers azimuths [-180 + a w, -180 + (a + 1) w) deg in
+    the sensor frame (``free_space._cells``)."""
+    if scan_ranges is None:
+        return None
+    R = np.asarray(scan_ranges)
+    if R.ndim != 2 or R.shape[0] == 0:
+        return None
+    return np.isfinite(R).any(axis=1)
+
+
+def coverage(mask: NDArray[np.bool_] | None) -> float:
+    """Share of azimuth cells with a return (1.0 when unknown: no image, no view check)."""
+    return 1.0 if mask is None or len(mask) == 0 else float(np.mean(mask))
+
+
+def _inside(points: NDArray[np.float64], M: NDArray[np.float64], mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Which ``points`` moved by ``M`` (into a sensor frame) fall in an observed azimuth cell."""
+    q = points @ M[:3, :3].T + M[:3, 3]
+    na = len(mask)
+    a = (np.floor((np.degrees(np.arctan2(q[:, 1], q[:, 0])) + 180.0) * (na / 360.0)).astype(np.int64)) % na
+    return mask[a]
+
+
+def covisible_overlap(source, target, T_target_source: NDArray[np.float64], inlier_m: float,
+                      source_mask: NDArray[np.bool_], target_mask: NDArray[np.bool_]
+                      ) -> tuple[float, float, int, int]:
+    """(source share explained, target share explained, source points judged, target points
+    judged), counting in each direction only the points that ``T_target_source`` puts inside
+    the other scan's observed azimuth cells (``*_mask`` from :func:`azimuth_mask`, in each
+    cloud's sensor frame, ``SupportCloud.sensor_pose``). A direction with no point judged
+    explains 0. With both masks all True this is :func:`evidence.point_overlap`."""
+    T = np.asarray(T_target_source, dtype=np.float64)
+    Ps = np.eye(4) if source.sensor_pose is None else source.sensor_pose
+    Pt = np.eye(4) if target.sensor_pose is None else target.sensor_pose
+    in_s = _inside(source.points, invert(Pt) @ T, target_mask)  # source points the target looked at
+    in_t = _inside(target.points, invert(Ps) @ invert(T), source_mask)
+    ns, nt = int(in_s.sum()), int(in_t.sum())
+    out = []
+    for n, pts, other, inverse in ((ns, source.points[in_s], target, False), (nt, target.points[in_t], source, True)):
+        if n == 0:
+            out.append(0.0)
+            continue
+        h = other.cell_hash(inlier_m)
+        if h.ok:
+            out.append(float(h.hits(np.ascontiguousarray(pts), T[None], inverse=inverse)[0]) / n)
+        else:
+            R, t = T[:3, :3], T[:3, 3]
+            q = (pts - t) @ R if inverse else pts @ R.T + t
+            out.append(float(np.mean(other.neighbours(q, inlier_m, nearest=False) >= 0)))
+    return out[0], out[1], ns, nt
