@@ -49,7 +49,7 @@ from graffmatch.verification.hypotheses import (
     translation_redundancy,
 )
 from graffmatch.verification.translation_vote import vote_translations
-from graffmatch.verification.view import covisible_overlap
+from graffmatch.verification.view import check_view
 
 
 @dataclass
@@ -380,38 +380,6 @@ def _check_free_space(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -
         )
 
 
-def _check_view(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -> None:
-    """Partial views (``view.py``): when the smaller azimuth coverage of the two scans is below
-    ``view_whole``, the winner must also explain ``partial_min_overlap`` of the points that lie
-    where the other scan looked (co-visible overlap) and beat its rival by ``partial_max_rival_ratio``.
-    Thresholds calibrated on whole scans let slides along a wall and 180 deg flips through when one
-    scan sees only a sector (docs/verification.md, Sessions 14 and 15). Whole-scan pairs, and sets
-    without a whole-scan range image, are left as they are (the view is then not known)."""
-    m_s, m_t = ev.source.view_mask(), ev.target.view_mask()  # type: ignore[union-attr]
-    if m_s is None or m_t is None:
-        return
-    best = verdict.best
-    c_s, c_t = float(m_s.mean()), float(m_t.mean())
-    best.info["view_coverage"] = (c_s, c_t)
-    view = min(c_s, c_t)
-    if view >= cfg.view_whole:
-        return
-    if view >= cfg.view_narrow:
-        tier, min_ov, max_ratio = "partial", cfg.partial_min_overlap, cfg.partial_max_rival_ratio
-    else:
-        tier, min_ov, max_ratio = "narrow", cfg.narrow_min_overlap, cfg.narrow_max_rival_ratio
-    p0, p1, _, _ = covisible_overlap(ev.source, ev.target, best.T_target_source, cfg.inlier_m, m_s, m_t)
-    cov = 0.5 * (p0 + p1)
-    best.info["covisible_overlap"] = (p0, p1)
-    if cov < min_ov:
-        verdict.valid = False
-        verdict.problems.append(f"{tier} view: coverage {view:.2f}, co-visible overlap {cov:.2f} < {min_ov:.2f}")
-    if verdict.runner_up is not None and verdict.rival_ratio > max_ratio:
-        verdict.valid = False
-        verdict.problems.append(
-            f"{tier} view: coverage {view:.2f}, rival ratio {verdict.rival_ratio:.2f} > {max_ratio:.2f}")
-
-
 def _check_slide(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -> None:
     """Invalid when the evidence does not pin the winner's translation: aligned from starts
     ``slide_m`` away in 16 horizontal directions, the points settle at least ``rival_m`` away
@@ -598,7 +566,7 @@ def verify_graph(
     if ev.has_points and cfg.free_space and verdict.best is not None:
         _check_free_space(verdict, ev, cfg)
     if ev.has_points and cfg.view_check and verdict.best is not None:
-        _check_view(verdict, ev, cfg)
+        check_view(verdict, ev, cfg)
     if ev.has_points and cfg.max_slide_ratio is not None and verdict.best is not None:
         _check_slide(verdict, ev, cfg)
     if verdict.best is not None:

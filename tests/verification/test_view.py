@@ -1,4 +1,4 @@
-"""Partial views (``verification/view.py``, ``verify._check_view``): a scan's azimuth coverage,
+"""Partial views (``verification/view.py``, ``view.check_view``): a scan's azimuth coverage,
 the co-visible overlap, and the stricter decision for pairs where one scan sees only a sector
 (docs/verification.md, Session 15). Courtyard tests skip without ../shared/data."""
 
