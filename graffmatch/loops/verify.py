@@ -361,6 +361,7 @@ def scan_pass(
     query, candidate = _with_scan_ranges(query, query_scan), _with_scan_ranges(candidate, candidate_scan)
     ev = scan_evidence(query, candidate, np.asarray(query_scan, float), np.asarray(candidate_scan, float),
                        _verification_config(matcher))
+    ev.view = False  # the range images are the non-ground clouds': their empty azimuths are no partial view
     if ev.kind != "scans":
         out["scan_message"] = "too few scan points"
     else:

@@ -63,6 +63,11 @@ class Evidence:
     source: SupportCloud | None
     target: SupportCloud | None
     kind: str = "support"
+    #: whether the clouds' ``scan_ranges`` show what each sensor looked at (the extractor's
+    #: whole-scan image, ground included), so their azimuth coverage is the scan's view
+    #: (``view.check_view``); False for images of non-ground clouds (``loops.verify.scan_pass``),
+    #: where an open road leaves whole azimuth sectors empty (coverage 0.53-0.62 on sim-openroad)
+    view: bool = True
 
     @property
     def has_points(self) -> bool:

@@ -100,7 +100,7 @@ def check_view(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -> None:
     scan sees only a sector (docs/verification.md, Sessions 14 and 15). Whole-scan pairs, and sets
     without a whole-scan range image, are left as they are (the view is then not known). Cost: the
     coverage is built once per evidence cloud; a partial pair adds one co-visible count (~0.25 ms)."""
-    if ev.source is None or ev.target is None or verdict.best is None:
+    if ev.source is None or ev.target is None or verdict.best is None or not ev.view:
         return
     m_s, m_t = ev.source.view_mask(), ev.target.view_mask()
     if m_s is None or m_t is None:

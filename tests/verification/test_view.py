@@ -137,3 +137,27 @@ def test_whole_courtyard_pair_unchanged_and_deterministic(court) -> None:
     assert a.valid and min(a.info["view_coverage"]) > 0.95 and "covisible_overlap" not in a.info
     assert np.array_equal(a.T_target_source, b.T_target_source) and a.confidence == b.confidence
     assert np.array_equal(a.T_target_source, c.T_target_source) and a.message == c.message == "ok"
+
+
+def test_view_unknown_for_non_ground_images() -> None:
+    """``Evidence.view`` False (the loops' scan pass, whose range images are built from non-ground
+    clouds: an open road leaves azimuth sectors empty) skips the check; True on a 90 deg sector
+    records the coverage and applies the narrow tier."""
+    from graffmatch.verification.decision import Hypothesis, Verdict
+    from graffmatch.verification.verify import Evidence
+    from graffmatch.verification.view import check_view
+
+    X = _ring(4000)
+    Xs = _sector(X, 0.0, 90.0)
+    S = SupportCloud(Xs, sensor_pose=np.eye(4), scan_ranges=cell_minimum_ranges(Xs))
+    T = SupportCloud(X, sensor_pose=np.eye(4), scan_ranges=cell_minimum_ranges(X))
+    cfg = VerificationConfig()
+    for view in (False, True):
+        h = Hypothesis(np.eye(4), np.zeros((3, 2), np.int64), "test", 1.0, 1.0, False)
+        v = Verdict(h, None, True, 0.9, 1.0, 0.0, [])
+        check_view(v, Evidence(S, T, view=view), cfg)
+        assert v.valid and v.problems == []
+        if view:
+            assert abs(h.info["view_coverage"][0] - 0.25) < 0.01 and h.info["covisible_overlap"][1] == 1.0
+        else:
+            assert "view_coverage" not in h.info
