@@ -339,6 +339,32 @@ def print_tables(rows: list[dict], th_s=None, th_c=None, title: str = "") -> dic
     return out
 
 
+def gated_table(rows: list[dict], title: str, min_view: float = 0.9) -> None:
+    """Valid / wrong per view and sign for support only, support then scans, and the default
+    (``ScanMatcherConfig.scan_fallback_min_view``: the scans row only when the support row is not
+    valid and the pair's smaller coverage is at least ``min_view``)."""
+    count: dict = {}
+    for r in rows:
+        if "support" not in r:
+            continue
+        s, sc = r["support"], r.get("scans")
+        whole = bool(s.get("coverage")) and min(s["coverage"]) >= min_view
+        for mode in ("support", "support_then_scans", "default (gated)"):
+            use = sc if (mode != "support" and not s["valid"] and sc is not None
+                         and (mode == "support_then_scans" or whole)) else s
+            c = count.setdefault((r["view"], r["positive"], mode), [0, 0, 0])
+            c[0] += 1
+            c[1] += bool(use["valid"])
+            c[2] += bool(use["valid"] and not use["correct"])
+    print(f"\n{title}: valid / wrong of pairs")
+    for view in ("whole", "180-270", "90-180", "60-90"):
+        for pos in (True, False):
+            if (view, pos, "support") in count:
+                cells = "  ".join(f"{m} {count[(view, pos, m)][1]} / {count[(view, pos, m)][2]}"
+                                  for m in ("support", "support_then_scans", "default (gated)"))
+                print(f"  {view:>8} {'positives' if pos else 'negatives'} ({count[(view, pos, 'support')][0]}): {cells}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--split", choices=("cal", "test"), default="test")
@@ -355,7 +381,14 @@ def main() -> None:
     ap.add_argument("--apply", default=None,
                     help="with --choose FILE: print FILE's tables at these thresholds instead, JSON "
                          '{"support": {"partial": [o, q, s], "narrow": [...]}, "scans": {...}}')
+    ap.add_argument("--gated", type=Path, nargs="+", default=None,
+                    help="re-decide --report files as ScanMatcher's default does (the raw-scan pass only "
+                         "when the support points fail and both views cover >= 0.9) and print valid / wrong")
     a = ap.parse_args()
+    if a.gated:
+        for f in a.gated:
+            gated_table(json.loads(f.read_text())["rows"], str(f))
+        return
     if a.choose:
         rows = json.loads(a.choose.read_text())["rows"]
         rows = [r for r in rows if "error" not in r]

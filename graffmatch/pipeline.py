@@ -5,9 +5,10 @@ matcher once. It is the single code path for :func:`register_scans`, ``graffmatc
 the demo, the evaluation's GraffMatch methods and ``graffmatch loops``; its config is a nested
 pydantic model, written next to every result.
 
-With raw scans at hand, ``evidence='support_then_scans'`` (opt-in) verifies again on the scans' non-ground
+With raw scans at hand, ``evidence='support_then_scans'`` (the default) verifies again on the scans' non-ground
 voxel clouds (the extractor's ``last_cloud``) when the landmarks' support points give no valid
-answer, at thresholds chosen for that evidence (``VerificationConfig.scans``). The winner is refined by ICP on the
+answer and both scans are whole views (``scan_fallback_min_view``), at thresholds chosen for that
+evidence on whole scans (``VerificationConfig.scans``). The winner is refined by ICP on the
 voxel-downsampled non-ground scans (or on the matched landmarks' points). ``register`` hands ICP the extractor's own voxel cloud
 of each scan with its normals (``LandmarkExtractor.last_cloud``), so nothing is voxelised or
 normal-estimated twice (``refine`` called with raw scans only re-voxelises them). A refinement
@@ -34,6 +35,7 @@ from graffmatch.lidar.voxels import VoxelCloud
 from graffmatch.matcher import GraffMatchConfig, GraffMatcher, MatchResult
 from graffmatch.verification.evidence import voxel_downsample
 from graffmatch.verification.verify import Evidence, scan_evidence
+from graffmatch.verification.view import set_coverage
 
 
 class RefinementConfig(BaseModel):
@@ -76,18 +78,22 @@ class ScanMatcherConfig(BaseModel):
     matcher: GraffMatchConfig = Field(default_factory=GraffMatchConfig)
     refinement: RefinementConfig = Field(default_factory=RefinementConfig)
     evidence: Literal["support", "support_then_scans"] = Field(
-        "support",
-        description="what register() verifies hypotheses on: support (the landmarks' support points, as "
-        "match() on landmark sets; the default) or support_then_scans (when the support points give no valid "
-        "answer, verify again on the scans' non-ground voxel clouds from the extractor, matcher.verification."
-        "scan_voxel / scan_max_points, at verification.scans' thresholds, chosen on the calibration split of "
-        "bench/verification.py --evidence scans: on whole scans sim-downtown test recall 0.917 -> 0.967 at "
-        "precision 1.000; but on partial views its extra answers are less often right, e.g. courtyard scans cut "
-        "to 90-180 deg: precision 0.924 -> 0.892, bench/verification_partial_views.py; docs/verification.md "
-        "Session 14. Session 15's view-aware decision (VerificationConfig.view_check) cut the wrong answers on "
-        "cropped test pairs from 29 to 7 for this option and from 21 to 3 for the support points, but its "
-        "partial-view test precision, 0.988, stays below both 0.99 and the support points' 0.991, so the "
-        "default is unchanged; a lines-only matcher keeps the support points only)",
+        "support_then_scans",
+        description="what register() verifies hypotheses on: support (the landmarks' support points only, as "
+        "match() on landmark sets) or support_then_scans (the default: when the support points give no valid "
+        "answer and both scans are whole views, see scan_fallback_min_view, verify again on the scans' non-ground "
+        "voxel clouds from the extractor, matcher.verification.scan_voxel / scan_max_points, at "
+        "verification.scans' thresholds, chosen on the whole-scan calibration split of bench/verification.py "
+        "--evidence scans: sim-downtown test recall 0.917 -> 0.967 at precision 1.000, docs/verification.md "
+        "Sessions 14-15; a lines-only matcher keeps the support points only)",
+    )
+    scan_fallback_min_view: float = Field(
+        0.9, ge=0, le=1,
+        description="the raw-scan pass runs only when both scans cover at least this share of azimuths "
+        "(verification.view.set_coverage; unknown coverage: no raw-scan pass). Its thresholds were chosen on "
+        "whole scans, and on cropped views its extra answers were right less often (test crops: 7 wrong against "
+        "the support points' 3, bench/verification_partial_views.py, docs/verification.md Session 15); every "
+        "whole scan of the verification bench covers >= 0.953. 0: on every pair",
     )
 
 
@@ -234,10 +240,20 @@ class ScanMatcher:
         have = all(c is not None or p is not None for c, p in ((source_cloud, source_points),
                                                                  (target_cloud, target_points)))
         if (self.config.evidence == "support_then_scans" and have and not result.valid
-                and mcfg.verification.enabled and set(mcfg.landmark_types) != {"line"}):
+                and mcfg.verification.enabled and set(mcfg.landmark_types) != {"line"}
+                and self._whole_views(source, target)):
             result = self._scan_pass(result, source, target, self._scan_points(source_points, source, source_cloud),
                                      self._scan_points(target_points, target, target_cloud))
         return result
+
+    def _whole_views(self, source: LandmarkSet, target: LandmarkSet) -> bool:
+        """Both scans cover at least ``scan_fallback_min_view`` of the azimuths (the raw-scan
+        thresholds' calibration domain; 0 accepts any pair, also of unknown coverage)."""
+        lo = self.config.scan_fallback_min_view
+        if lo <= 0:
+            return True
+        cov = [set_coverage(source), set_coverage(target)]
+        return all(c is not None and c >= lo for c in cov)
 
     def _scan_pass(self, first: MatchResult, src: LandmarkSet, tgt: LandmarkSet,
                    source_points: NDArray[np.float64], target_points: NDArray[np.float64]) -> MatchResult:

@@ -54,6 +54,15 @@ def coverage(mask: NDArray[np.bool_] | None) -> float:
     return 1.0 if mask is None or len(mask) == 0 else float(np.mean(mask))
 
 
+def set_coverage(landmarks: object) -> float | None:
+    """Coverage of a landmark set's scan (its ``scan_ranges`` image), None when unknown (no
+    image or no sensor pose), as :meth:`SupportCloud.view_mask` judges it."""
+    if getattr(landmarks, "sensor_pose", None) is None:
+        return None
+    mask = azimuth_mask(getattr(landmarks, "scan_ranges", None))
+    return None if mask is None else coverage(mask)
+
+
 def _inside(points: NDArray[np.float64], M: NDArray[np.float64], mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
     """Which ``points`` moved by ``M`` (into a sensor frame) fall in an observed azimuth cell."""
     q = points @ M[:3, :3].T + M[:3, 3]

@@ -121,11 +121,11 @@ def test_scans_loop_confidence_rule():
 def test_defaults_are_the_calibrated_scan_rule():
     """Session 15's choice on the calibration drives (bench/loops_calibration_scans.py): clouds for
     scans with < 8 landmarks, scan verdicts from confidence 0.99 with 3 agreeing landmarks; cloud
-    pairs the quick check rejects stay unverified (the time target); ScanMatcher's own default
-    evidence stays the support points."""
+    pairs the quick check rejects stay unverified (the time target). (ScanMatcher's own default,
+    raw scans after the support points on whole views, is the verification bench's.)"""
     from graffmatch.pipeline import ScanMatcherConfig
 
     v = VerificationConfig()
     assert (v.scan_cloud_below, v.scans_min_confidence, v.scans_min_agreeing, v.scans_skip_quick_check) == (
         8, 0.99, 3, False)
-    assert ScanMatcherConfig().evidence == "support"
+    assert ScanMatcherConfig().evidence == "support_then_scans"

@@ -77,15 +77,15 @@ def test_switch_falls_back_to_scan_evidence(scans) -> None:
     a = _matcher("support_then_scans", ext).register(court[41].points, court[1].points)
     b = _matcher("support", ext).register(court[41].points, court[1].points)
     assert not b.valid and b.info["evidence_source"] == "support"
-    # the default is the support points alone: the fallback's extra answers are less reliable
-    # on partial views (docs/verification.md, Session 14, bench/verification_partial_views.py)
+    # the default falls back on whole scans (both cover >= scan_fallback_min_view)
     c = ScanMatcher(ScanMatcherConfig(extractor=ext)).register(court[41].points, court[1].points)
-    assert not c.valid and "scan_pass" not in c.timings and "raw scans:" not in c.message
+    assert c.valid and c.info["evidence_source"] == "scans", c.message
     assert a.valid, a.message
     assert a.info["evidence_source"] == "scans" and "support_message" in a.info
     T_gt = invert(court.poses[1]) @ court.poses[41]
-    rot, tr = transform_errors(a.T_target_source, T_gt)
-    assert rot < 1.0 and tr < 0.3, (rot, tr)
+    for r in (a, c):
+        rot, tr = transform_errors(r.T_target_source, T_gt)
+        assert rot < 1.0 and tr < 0.3, (rot, tr)
 
 
 def test_scan_thresholds_apply_to_scan_evidence_only() -> None:
@@ -101,3 +101,30 @@ def test_scan_thresholds_apply_to_scan_evidence_only() -> None:
     assert cfg.for_evidence(["line", "plane"], "support").min_overlap == cfg.min_overlap
     assert cfg.for_evidence(["line"], "scans").min_overlap == cfg.lines_only.min_overlap  # type: ignore[union-attr]
     assert np.isclose(VerificationConfig(scans=None).for_evidence(["plane"], "scans").min_overlap, cfg.min_overlap)
+
+
+def test_no_scan_fallback_on_partial_views(scans) -> None:
+    """The raw-scan thresholds were chosen on whole scans: a source cut to a 120 deg sector
+    (coverage ~0.33 < 0.9) is verified on the support points only, unless
+    scan_fallback_min_view is 0 (docs/verification.md, Session 15)."""
+    from graffmatch.verification.view import set_coverage
+
+    _, court = scans
+    ext = suite_config("balm_courtyard").extractor
+    P = court[41].points
+    az = np.degrees(np.arctan2(P[:, 1], P[:, 0]))
+    part = P[(az > -60.0) & (az < 60.0)]
+    sm = _matcher("support_then_scans", ext)
+    src = sm.extractor.extract(part)
+    cov = set_coverage(src)
+    assert cov is not None and 0.25 < cov < 0.45, cov
+    assert set_coverage(sm.extractor.extract(P)) > 0.95
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = sm.register(part, court[1].points)
+        assert "scan_pass" not in r.timings and "scan_evidence" not in r.timings
+        open_cfg = ScanMatcherConfig(evidence="support_then_scans", scan_fallback_min_view=0.0, extractor=ext,
+                                     refinement=RefinementConfig(method="icp"))
+        r0 = ScanMatcher(open_cfg).register(part, court[1].points)
+    assert not r.valid and r.info["evidence_source"] == "support", r.message  # the support points refuse
+    assert "scan_evidence" in r0.timings, r0.timings  # without the gate the raw scans are tried
