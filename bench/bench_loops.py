@@ -160,7 +160,8 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--verification", nargs="+", default=[], metavar="KEY=VALUE",
                     help="override VerificationConfig fields of our detector (a labelled variant, e.g. "
-                    "scans_skip_quick_check=false; values parsed as JSON)")
+                    "scans_skip_quick_check=false; 'matcher.KEY': the verified matcher's VerificationConfig; values "
+                    "parsed as JSON)")
     ap.add_argument("--merge", type=Path, nargs="+", default=None,
                     help="only merge the results.json of these --out folders (same scans, methods run "
                     "in separate processes) into one table and --json; FOLDER::PREFIX,... keeps only the "
@@ -194,7 +195,10 @@ def main() -> None:
     config = benchmark_config()
     for kv in args.verification:  # a labelled variant of the defaults
         key, val = kv.split("=", 1)
-        setattr(config.verification, key, json.loads(val))
+        target = config.verification
+        if key.startswith("matcher."):  # the verified matcher's own (e.g. matcher.point_hypotheses=true)
+            key, target = key.removeprefix("matcher."), config.matcher.verification
+        setattr(target, key, json.loads(val))
     if args.union == "off":
         config.retrieval.method = "descriptor"  # the default before session 10's end
     elif args.union:

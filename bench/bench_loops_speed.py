@@ -66,7 +66,8 @@ def main() -> None:
     ap.add_argument("--records", type=Path, default=None, help="one JSON line per timed query")
     ap.add_argument("--verification", nargs="+", default=[], metavar="KEY=VALUE",
                     help="override VerificationConfig fields of our detector (a labelled variant, e.g. "
-                    "scans_skip_quick_check=false; values parsed as JSON)")
+                    "scans_skip_quick_check=false; 'matcher.KEY': the verified matcher's VerificationConfig; values "
+                    "parsed as JSON)")
     args = ap.parse_args()
 
     import json
@@ -96,7 +97,10 @@ def main() -> None:
         base = benchmark_config()
         for kv in args.verification:  # a labelled variant of the defaults
             key, val = kv.split("=", 1)
-            setattr(base.verification, key, json.loads(val))
+            target = base.verification
+        if key.startswith("matcher."):  # the verified matcher's own (e.g. matcher.point_hypotheses=true)
+            key, target = key.removeprefix("matcher."), base.matcher.verification
+        setattr(target, key, json.loads(val))
         db = LandmarkDatabase()
         # a de-skewed drive (bench_loops.py --deskew: "<name>+deskew") has its raw drive's times
         src = COURTYARD if drive == "balm_courtyard" else args.data / drive.removesuffix("+deskew")

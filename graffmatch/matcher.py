@@ -215,7 +215,9 @@ def match_with_distances(
         n_edges=graph.n_edges,
         info={"solver": repr(sol), "m_after_pruning": sol.info.get("m_after_pruning")},
     )
-    if len(assoc) == 0:
+    points_only = (cfg.verification.enabled and cfg.verification.point_hypotheses and evidence is not None
+                   and evidence.kind == "scans" and evidence.has_points)  # hypotheses need no associations
+    if len(assoc) == 0 and not points_only:
         timings["registration"] = 0.0
         timings["total"] = sum(timings.values())
         return MatchResult(None, kappa=np.inf, degenerate=True, valid=False,
@@ -289,7 +291,8 @@ def _verified_once(source, target, graph, W, sol, cfg: GraffMatchConfig, vcfg, v
     need = cfg.min_associations
     if best.info.get("evidence") == "points" and np.all(source.types[best.associations[:, 0]] == LandmarkType.LINE):
         need = min(need, cfg.min_line_associations)
-    if best.n_associations < need:
+    if best.n_associations < need and best.origin != "points":  # a points hypothesis has none: the
+        # raw scans verified it (VerificationConfig.point_hypotheses)
         problems.insert(0, f"only {best.n_associations} associations (< {need})")
     problems += reach_problems(source, target, best.T_target_source)
     common.update(associations=best.associations, score=best.objective,

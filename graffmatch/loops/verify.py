@@ -68,6 +68,12 @@ SCAN_CLOUD_BELOW = 8
 SCANS_MIN_CONFIDENCE = 0.99
 SCANS_MIN_AGREEING = 3
 SCANS_SKIP_QUICK_CHECK = False
+#: Scan verdicts whose winner came from the points themselves (the matcher's
+#: ``verification.point_hypotheses``, off by default: a landmark-poor pair gives the graph < 3
+#: associations): their own fewest agreeing landmarks, and how many quick-rejected cloud pairs a
+#: query verifies (session 15b; calibration in bench/loops_calibration_points15b.py).
+SCANS_POINTS_MIN_AGREEING = 3
+SCANS_SKIP_MAX: int | None = None
 
 
 class VerificationConfig(BaseModel):
@@ -169,6 +175,16 @@ class VerificationConfig(BaseModel):
         description="verify candidates whose two scans keep scan clouds even when the quick check rejects "
         "them (after the passing ones, within max_verified): a landmark-poor scan's BEV map has two or three "
         "entries, too few to vote on",
+    )
+    scans_points_min_agreeing: int = Field(
+        SCANS_POINTS_MIN_AGREEING, ge=0,
+        description="scans_min_agreeing for a scan verdict whose winner came from the points (origin 'points', "
+        "matcher.verification.point_hypotheses): a query with two landmarks cannot show three",
+    )
+    scans_skip_max: int | None = Field(
+        SCANS_SKIP_MAX, ge=0,
+        description="with scans_skip_quick_check: verify at most this many quick-rejected cloud pairs a query "
+        "(best quick score, then retrieval rank, first; None: as many as max_verified leaves)",
     )
     max_landmarks_per_type: int | None = Field(
         40, ge=2, description="match at most this many landmarks of a type (largest first)"
@@ -304,15 +320,17 @@ def loop_confidence(
 
 
 def scans_loop_confidence(
-    scan_valid: bool, scan_confidence: float | None, n_agreeing: int, distance_m: float, config: VerificationConfig
+    scan_valid: bool, scan_confidence: float | None, n_agreeing: int, distance_m: float, config: VerificationConfig,
+    from_points: bool = False,
 ) -> float:
     """The confidence of a pair verified again on the two scan clouds (0: not a loop): the raw-scan
     verdict's own confidence when it is valid, reaches ``scans_min_confidence``, has
     ``scans_min_agreeing`` agreeing landmarks and lies inside the place radius less the margin.
+    ``from_points``: the verdict's winner came from the points (``scans_points_min_agreeing``).
     One rule for ``graffmatch loops``, :class:`LoopDetector`, the benchmark and the calibration."""
     if not scan_valid or scan_confidence is None or scan_confidence < config.scans_min_confidence:
         return 0.0
-    if n_agreeing < config.scans_min_agreeing:
+    if n_agreeing < (config.scans_points_min_agreeing if from_points else config.scans_min_agreeing):
         return 0.0
     if config.max_translation_m is not None and distance_m > config.max_translation_m - config.place_margin_m:
         return 0.0
@@ -353,11 +371,11 @@ def scan_pass(
     ``match(..., evidence=)`` path, at ``VerificationConfig.scans``' thresholds).
 
     Returns scan_valid, scan_confidence, scan_T (or None), scan_n_agreeing, scan_overlap,
-    scan_message, scan_seconds. Why: a landmark-poor pair cannot show the agreeing landmarks the
+    scan_message, scan_origin (the winner's, 'points' for a point hypothesis), scan_seconds. Why: a landmark-poor pair cannot show the agreeing landmarks the
     landmark rule wants, however right its pose; the whole scans can show it is right."""
     t0 = time.perf_counter()
     out = {"scan_valid": False, "scan_confidence": None, "scan_T": None, "scan_n_agreeing": 0,
-           "scan_overlap": 0.0, "scan_message": ""}
+           "scan_overlap": 0.0, "scan_message": "", "scan_origin": None}
     query, candidate = _with_scan_ranges(query, query_scan), _with_scan_ranges(candidate, candidate_scan)
     ev = scan_evidence(query, candidate, np.asarray(query_scan, float), np.asarray(candidate_scan, float),
                        _verification_config(matcher))
@@ -371,7 +389,7 @@ def scan_pass(
             res = None
             out["scan_message"] = str(exc)
         if res is not None:
-            out.update(scan_valid=bool(res.valid), scan_message=res.message)
+            out.update(scan_valid=bool(res.valid), scan_message=res.message, scan_origin=res.info.get("origin"))
             mconf = getattr(res, "confidence", None)
             out["scan_confidence"] = None if mconf is None else float(mconf)
             if res.T_target_source is not None:
@@ -455,7 +473,8 @@ def verify_candidate(
         out.update(sp)
         sT = sp["scan_T"]
         sconf = 0.0 if sT is None else scans_loop_confidence(
-            sp["scan_valid"], sp["scan_confidence"], sp["scan_n_agreeing"], float(np.linalg.norm(sT[:3, 3])), config)
+            sp["scan_valid"], sp["scan_confidence"], sp["scan_n_agreeing"], float(np.linalg.norm(sT[:3, 3])), config,
+            sp["scan_origin"] == "points")
         if sconf >= config.min_confidence and sconf > out["confidence"]:
             out.update(support_T=out["T_match_query"], T_match_query=sT, confidence=sconf, on_scans=True)
     out["seconds"] = time.perf_counter() - t0
@@ -510,7 +529,8 @@ def verify_query(
             if not r["quick_pass"] and scan[r["match"]] is not None:
                 r["quick_pass_scans"] = True
     order = sorted((r for r in recs if r["quick_pass"]), key=lambda r: (-r["quick_score"], r["rank"]))
-    order += sorted((r for r in recs if r.get("quick_pass_scans")), key=lambda r: (-r["quick_score"], r["rank"]))
+    extra = sorted((r for r in recs if r.get("quick_pass_scans")), key=lambda r: (-r["quick_score"], r["rank"]))
+    order += extra if config.scans_skip_max is None else extra[: config.scans_skip_max]
     order = order[: config.max_verified]
     for rec in order:
         v = verify_candidate(landmarks_of(query), landmarks_of(rec["match"]), matcher, config,
@@ -525,7 +545,7 @@ def verify_query(
         )
         if "scan_valid" in v:
             rec.update({k: v[k] for k in ("scan_valid", "scan_confidence", "scan_n_agreeing", "scan_overlap",
-                                          "scan_message", "scan_seconds")})
+                                          "scan_message", "scan_origin", "scan_seconds")})
             rec["scan_T"] = None if v["scan_T"] is None else np.asarray(v["scan_T"]).ravel().tolist()
         if v.get("on_scans"):
             rec["on_scans"] = True

@@ -161,6 +161,16 @@ class VerificationConfig(BaseModel):
     vote_reach_m: float = Field(12.0, gt=0, description="... within this horizontal distance of its translation [m]")
     vote_height_m: float = Field(1.0, gt=0, description="... from point pairs within this height of each other [m]")
     vote_cell_m: float = Field(0.5, gt=0, description="... in cells of this size [m]")
+    point_hypotheses: bool = Field(
+        False, description="raw-scan evidence only: when the landmark graph's winner has fewer associations than "
+        "the matcher needs (a landmark-poor pair: two or three landmarks a scan), add hypotheses from the points "
+        "themselves: a yaw sweep (z-up frames; ground vehicles, no roll or pitch) with each yaw's translation voted "
+        "on the points (translation_vote.py), plus the evidence's own starts (e.g. odometry); the landmarks alone "
+        "give such pairs nothing to verify (docs/loops.md, session 15b)",
+    )
+    point_yaw_step_deg: float = Field(10.0, gt=0, le=90, description="... the sweep's yaw step [deg]")
+    point_peaks: int = Field(2, ge=1, description="... the strongest vote peaks of each yaw become starts")
+    point_align: int = Field(4, ge=1, description="... the best starts by occupancy are aligned and scored exactly")
     inlier_m: float = Field(0.3, gt=0, description="a point is explained within this distance [m]")
     landmark_deg: float = Field(5.0, gt=0, description="landmark-level evidence: angle tolerance [deg]")
     landmark_m: float = Field(0.4, gt=0, description="landmark-level evidence: offset tolerance [m]")

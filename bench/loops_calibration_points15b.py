@@ -1,0 +1,207 @@
+"""Choose the rule for loops verified on point hypotheses on calibration drives (issue 15, session 15b).
+
+    PYTHONPATH=$PWD nice -n 19 python bench/loops_calibration_points15b.py --data /tmp/loops15-cal-data \\
+        --out /tmp/pts15-cal-out --json bench/results/loops_calibration_points15b.json
+
+Session 15's scan pass (``loops/verify.scan_pass``) verifies a pair of two landmark-poor scans on
+their stored scan clouds, but only hypotheses from the landmark graph reach that evidence: a query
+with two to four landmarks gives the graph two associations and no hypothesis (17 of downtown-s1's
+30 misses, all rejected by the BEV quick check too). With the matcher's
+``verification.point_hypotheses`` the raw-scan pass also tries hypotheses from the points (a yaw
+sweep with translation votes; ``verification/verify._point_hypotheses``) when the graph's winner
+has fewer than three associations. A verdict whose winner came from them (``scan_origin`` 'points')
+is a loop under ``scans_points_min_agreeing`` (a) instead of ``scans_min_agreeing``; quick-rejected
+cloud pairs are reached only with ``scans_skip_quick_check``, at most ``scans_skip_max`` (m) a query.
+
+One run per calibration drive (bench/loops_calibration_scans.py's split and records: clouds below 12
+landmarks stored, every candidate verified, cloud pairs also past the quick check, the scan pass
+recorded, never applied), now with point hypotheses on; the default policy (session 15's shipped
+K 8 / confidence 0.99 / agreeing 3, at most 5 verified best quick score first, stop at the first
+accepted, then sequence consistency) replayed for points {off, on} x a {0-3} x skip {off, m 1, 2, 5}.
+'points off' replays this run with point-origin verdicts never accepted (their rivals may still
+have made a landmark-origin verdict invalid: an approximation, checked against session 15's 7.638).
+
+Rule of the choice, fixed before looking (session 15's): among the settings with no accepted loop
+that is not an e2e TP at the default threshold on any calibration drive AND no wrong candidate
+accepted by the scan rule among every verified cloud pair (stress set), the largest summed e2e
+recall at 100 % precision; ties to the stricter (points off, larger a, skip off, smaller m). The
+query time (k = 5 <= 20 ms mean) is measured after, with bench_loops_speed.py.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import machine, write_json
+from bench_loops import simulate
+from loops_calibration import CALIBRATION_DRIVES, score
+from loops_calibration_scans import DEFAULT_MAX_VERIFIED, e2e_true, predictions, run_config
+
+K = 8
+A_GRID = [0, 1, 2, 3]
+SKIP_GRID = [(False, None), (True, 1), (True, 2), (True, 5)]
+
+
+def candidate_confidence(c: dict, both_scans: bool, vcfg, points: bool) -> tuple[float, list | None, bool]:
+    """(confidence, T, accepted on scans) of a recorded candidate, as ``verify_candidate``."""
+    from graffmatch.loops.verify import loop_confidence, scans_loop_confidence
+
+    conf, T = 0.0, c["T"]
+    if T is not None:
+        Tm = np.asarray(T, float).reshape(4, 4)
+        conf = loop_confidence(bool(c["matcher_valid"]), c["matcher_confidence"], int(c["n_agreeing"]),
+                               float(c["overlap"]), float(np.linalg.norm(Tm[:3, 3])), vcfg,
+                               bool(c.get("on_points", False)))
+    if conf < vcfg.min_confidence and both_scans and c.get("scan_T") is not None:
+        from_points = c.get("scan_origin") == "points"
+        if from_points and not points:
+            return conf, T, False
+        sT = np.asarray(c["scan_T"], float).reshape(4, 4)
+        sconf = scans_loop_confidence(bool(c["scan_valid"]), c["scan_confidence"], int(c["scan_n_agreeing"]),
+                                      float(np.linalg.norm(sT[:3, 3])), vcfg, from_points)
+        if sconf >= vcfg.min_confidence and sconf > conf:
+            return sconf, c["scan_T"], True
+    return conf, T, False
+
+
+def policy_records(recs: dict[int, dict], has_scan: np.ndarray, vcfg, points: bool) -> dict[int, dict]:
+    """The candidates the default policy verifies under ``vcfg`` (``verify_query``'s order)."""
+    from graffmatch.loops.verify import quick_gate
+
+    out = {}
+    for q, r in recs.items():
+        passing, extra = [], []
+        for c in r["candidates"]:
+            if not c.get("verified", False):
+                continue
+            if quick_gate(int(c["quick_score"]), float(c["quick_fraction"]), float(c["quick_translation_m"]), vcfg):
+                passing.append(c)
+            elif vcfg.scans_skip_quick_check and has_scan[q] and has_scan[int(c["match"])]:
+                extra.append(c)
+        key = lambda c: (-c["quick_score"], c["rank"])  # noqa: E731
+        extra = sorted(extra, key=key)
+        if vcfg.scans_skip_max is not None:
+            extra = extra[: vcfg.scans_skip_max]
+        ver = (sorted(passing, key=key) + extra)[: vcfg.max_verified]
+        kept = []
+        for c in ver:
+            both = bool(has_scan[q] and has_scan[int(c["match"])])
+            conf, T, on_scans = candidate_confidence(c, both, vcfg, points)
+            kept.append({**c, "confidence": conf, "T": T, "on_scans": on_scans})
+            if T is not None and conf >= vcfg.min_confidence:
+                break
+        out[q] = {**r, "candidates": kept}
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=Path("/tmp/loops15-cal-data"))
+    ap.add_argument("--out", type=Path, default=Path("/tmp/pts15-cal-out"))
+    ap.add_argument("--scans", type=int, default=400)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--drives", nargs="+", default=None, metavar="SUITE:SEED", help="a subset of the split")
+    ap.add_argument("--replay-only", action="store_true")
+    ap.add_argument("--json", type=Path, default=None)
+    args = ap.parse_args()
+
+    from graffmatch.datasets.registry import open_dataset
+    from graffmatch.loops.consistency import apply_sequence_consistency
+    from graffmatch.loops.database import load_landmarks, load_scan_cloud
+    from graffmatch.loops.sequence import prepare_drive, read_queries, run_loops
+
+    t0 = time.perf_counter()
+    cfg = run_config(12)  # session 15's run (the same landmark cache keys) ...
+    cfg.matcher.verification.point_hypotheses = True  # ... with point hypotheses
+    split = CALIBRATION_DRIVES
+    if args.drives:
+        split = [(d.rsplit(":", 1)[0], int(d.rsplit(":", 1)[1])) for d in args.drives]
+        assert all(d in CALIBRATION_DRIVES for d in split), "calibration drives only"
+    drives = []
+    for p in simulate(args.data, args.scans, "realistic", split):
+        ds, odo = prepare_drive(open_dataset("folder", p), "drift", True)
+        out = args.out / ds.name / "ours"
+        if not args.replay_only:
+            t1 = time.perf_counter()
+            run_loops(ds, out, cfg, workers=args.workers, odometry=odo)
+            print(f"{ds.name}: run {time.perf_counter() - t1:.0f} s", flush=True)
+        recs = read_queries(out)
+        n_lm = np.array([len(load_landmarks(out / "landmarks" / f"{i:06d}.npz")) for i in range(len(ds))])
+        has = np.array([load_scan_cloud(out / "landmarks" / f"{i:06d}.npz") is not None
+                        for i in range(len(ds))]) & (n_lm < K)
+        cs = [c for r in recs.values() for c in r["candidates"] if "scan_seconds" in c]
+        pts = [c for c in cs if c.get("scan_origin") == "points"]
+        drives.append((ds, odo, np.asarray(ds.poses), recs, has, [c["scan_seconds"] for c in cs]))
+        print(f"{ds.name}: {int(has.sum())} scans with clouds (K {K}); {len(cs)} scan passes "
+              f"{1e3 * np.mean([c['scan_seconds'] for c in cs]) if cs else 0:.1f} ms mean, {len(pts)} won by "
+              f"points ({sum(bool(c['scan_valid']) for c in pts)} valid)", flush=True)
+
+    base_v = cfg.verification.model_copy(update={
+        "max_verified": DEFAULT_MAX_VERIFIED, "stop_when_accepted": True, "scan_cloud_below": K,
+        "scans_min_confidence": 0.99, "scans_min_agreeing": 3})
+    settings = [(False, 3, False, None)] + [(True, a, s, m) for a in A_GRID for s, m in SKIP_GRID] + [
+        (False, 3, s, m) for s, m in SKIP_GRID[1:]]
+    grid = []
+    for points, a_min, skip, m in settings:
+        v = base_v.model_copy(update={"scans_points_min_agreeing": a_min, "scans_skip_quick_check": skip,
+                                      "scans_skip_max": m})
+        c2 = cfg.model_copy(update={"verification": v})
+        rows, s_true, s_false, on_scans, false_rows = {}, 0, 0, 0, []
+        for ds, odo, poses, recs, has, _ in drives:
+            final = apply_sequence_consistency(policy_records(recs, has, v, points), odo, v)
+            rows[ds.name] = score(ds, predictions(final), c2)
+            on_scans += sum(1 for r in final.values() for c in r["candidates"]
+                            if c.get("on_scans") and c["confidence"] >= v.min_confidence)
+            for q, r in recs.items():  # stress set: every verified cloud pair
+                for c in r["candidates"]:
+                    if not c.get("verified", False) or not (has[q] and has[int(c["match"])]):
+                        continue
+                    _, T, by_scans = candidate_confidence(c, True, v, points)
+                    if not by_scans:
+                        continue
+                    ok, e = e2e_true(poses, q, int(c["match"]), T)
+                    if ok:
+                        s_true += 1
+                    else:
+                        s_false += 1
+                        false_rows.append({"drive": ds.name, "query": int(q), "match": int(c["match"]),
+                                           "scan_origin": c.get("scan_origin"),
+                                           "scan_confidence": c["scan_confidence"],
+                                           "scan_n_agreeing": c["scan_n_agreeing"], "gt_m_deg_m": e})
+        g = {"point_hypotheses": points, "scans_points_min_agreeing": a_min, "scans_skip_quick_check": skip,
+             "scans_skip_max": m, "drives": rows,
+             "sum_e2e_r100p": round(sum(r["e2e_r100p"] for r in rows.values()), 6),
+             "accepted_e2e_false": sum(r["accepted_e2e_false"] for r in rows.values()),
+             "accepted_on_scans_under_policy": on_scans, "stress_scans_true": s_true, "stress_scans_false": s_false,
+             "stress_false_rows": false_rows[:20]}
+        grid.append(g)
+        print(f"points {int(points)} a {a_min} skip {int(skip)} max {m}: sum {g['sum_e2e_r100p']:.3f} false "
+              f"{g['accepted_e2e_false']} on-scans {on_scans} | stress true {s_true} false {s_false} |",
+              " ".join(f"{n.replace('sim-', '').replace('+deskew', '')}:{r['e2e_r100p']:.3f}({r['accepted_e2e_false']})"
+                       for n, r in rows.items()), flush=True)
+    ok = [g for g in grid if g["accepted_e2e_false"] == 0 and g["stress_scans_false"] == 0]
+    best = max(ok, key=lambda g: (round(g["sum_e2e_r100p"], 9), not g["point_hypotheses"],
+                                  g["scans_points_min_agreeing"], not g["scans_skip_quick_check"],
+                                  -(g["scans_skip_max"] or 0)))
+    chosen = {k: best[k] for k in ("point_hypotheses", "scans_points_min_agreeing", "scans_skip_quick_check",
+                                   "scans_skip_max", "sum_e2e_r100p")}
+    print("chosen:", chosen)
+    all_s = np.concatenate([np.asarray(d[5], float) for d in drives]) if drives else np.zeros(0)
+    if args.json:
+        write_json(args.json, {
+            "machine": machine(), "wall_s": time.perf_counter() - t0, "drives": [d[0].name for d in drives],
+            "run_config_verification": cfg.verification.model_dump(mode="json"),
+            "run_config_matcher_verification": cfg.matcher.verification.model_dump(mode="json"), "chosen": chosen,
+            "scan_pass_ms": {"n": len(all_s), "mean": 1e3 * float(all_s.mean()) if len(all_s) else None,
+                             "p95": 1e3 * float(np.percentile(all_s, 95)) if len(all_s) else None},
+            "grid": grid})
+
+
+if __name__ == "__main__":
+    main()
