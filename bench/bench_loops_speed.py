@@ -98,9 +98,9 @@ def main() -> None:
         for kv in args.verification:  # a labelled variant of the defaults
             key, val = kv.split("=", 1)
             target = base.verification
-        if key.startswith("matcher."):  # the verified matcher's own (e.g. matcher.point_hypotheses=true)
-            key, target = key.removeprefix("matcher."), base.matcher.verification
-        setattr(target, key, json.loads(val))
+            if key.startswith("matcher."):  # the verified matcher's own (e.g. matcher.point_hypotheses=true)
+                key, target = key.removeprefix("matcher."), base.matcher.verification
+            setattr(target, key, json.loads(val))
         db = LandmarkDatabase()
         # a de-skewed drive (bench_loops.py --deskew: "<name>+deskew") has its raw drive's times
         src = COURTYARD if drive == "balm_courtyard" else args.data / drive.removesuffix("+deskew")
