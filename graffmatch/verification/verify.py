@@ -48,6 +48,7 @@ from graffmatch.verification.hypotheses import (
     rival_cliques,
     translation_redundancy,
 )
+from graffmatch.verification.point_hypotheses import point_hypotheses
 from graffmatch.verification.translation_vote import vote_translations
 from graffmatch.verification.view import check_view
 
@@ -451,34 +452,6 @@ def _translation_votes(merged: list[Hypothesis], source: LandmarkSet, target: La
     return votes
 
 
-def _point_hypotheses(ev: Evidence, cfg: VerificationConfig) -> list[Hypothesis]:
-    """Hypotheses from the evidence points alone (no associations; origin 'points'): yaws every
-    ``point_yaw_step_deg`` about z at zero translation and the evidence's ``starts``, each with
-    its ``point_peaks`` strongest translation votes (``translation_vote.py``), the starts also as
-    they are; the ``point_align`` best by occupancy aligned on the points and scored exactly.
-    Why: a pair of landmark-poor scans gives the graph two associations, so no landmark
-    hypothesis exists for the points to verify; the rival check then sees every distinct peak."""
-    yaws = np.radians(np.arange(0.0, 360.0, cfg.point_yaw_step_deg))
-    sweep = np.repeat(np.eye(4)[None], len(yaws), axis=0)
-    sweep[:, 0, 0] = sweep[:, 1, 1] = np.cos(yaws)
-    sweep[:, 1, 0] = np.sin(yaws)
-    sweep[:, 0, 1] = -sweep[:, 1, 0]
-    starts = [np.asarray(T, np.float64) for T in ev.starts]
-    P, Q = ev.source.sample(cfg.vote_points), ev.target.sample(cfg.vote_points)  # type: ignore[union-attr]
-    Ts = [T for S in [*starts, *sweep] for T in vote_translations(
-        P, Q, S, cfg.vote_reach_m, cfg.vote_height_m, cfg.vote_cell_m, cfg.point_peaks)]
-    hyps = [Hypothesis(T, np.zeros((0, 2), np.int64), "points", 0.0, 1.0, False) for T in [*starts, *Ts]]
-    if not hyps:
-        return []
-    score_hypotheses(hyps, None, None, ev, cfg, exact=False)  # type: ignore[arg-type]
-    hyps = merge_hypotheses(hyps, cfg)[: cfg.point_align]
-    for h in hyps:
-        h.info["T_landmarks"] = h.T_target_source
-        h.T_target_source = align_on_evidence(ev.source, ev.target, h.T_target_source)  # type: ignore[arg-type]
-    score_hypotheses(hyps, None, None, ev, cfg, exact=True)  # type: ignore[arg-type]
-    return hyps
-
-
 def score_hypotheses(
     hyps: list[Hypothesis], source: LandmarkSet, target: LandmarkSet, ev: Evidence,
     cfg: VerificationConfig, exact: bool,
@@ -516,7 +489,7 @@ def verify_graph(
     (:func:`_trimmed`); ``prior`` (the first pass's scored hypotheses) join the wide pass's
     before the decision, so an answer or rival the first pass found is never lost. With raw-scan
     evidence, ``cfg.point_hypotheses`` and a winner of fewer than ``min_associations``, hypotheses
-    from the points join (:func:`_point_hypotheses`). Graphs with pole pairs ignore ``wide``. The winner's
+    from the points join (``point_hypotheses.py``). Graphs with pole pairs ignore ``wide``. The winner's
     ``info["wide_differs"]`` says whether a wide pass would search differently (support points
     as evidence, no pole pairs). ``timings`` (optional) receives 'hypotheses', 'registration'
     and 'evidence' [s]."""
@@ -571,7 +544,8 @@ def verify_graph(
         if cfg.vote_rotations > 0 and not pair_cands and merged:
             merged = merge_hypotheses(merged + _translation_votes(merged, source, target, ev, cfg), cfg)
         if point_hyps and not wide:  # the wide pass has them among ``prior``
-            merged = merge_hypotheses(merged + _point_hypotheses(ev, cfg), cfg)
+            pts = point_hypotheses(ev.source, ev.target, cfg, ev.starts)  # type: ignore[arg-type]
+            merged = merge_hypotheses(merged + pts, cfg)
         lead = next((h for h in merged if not h.degenerate), None)  # the best exact score
         if cfg.local_search_m > 0:
             # both leaders: the exact leader may be a voted answer, and stage 1's leader a near

@@ -1,0 +1,61 @@
+"""Hypotheses from the evidence points alone, for pairs whose landmarks give the graph too few
+associations to register (a landmark-poor pair: two or three landmarks a scan).
+
+Why: with two associations no landmark hypothesis exists, so raw-scan evidence has nothing to
+verify (17 of sim-downtown-s1's misses after session 15, docs/loops.md session 15b). A yaw sweep
+about z (ground vehicles: no roll or pitch) with each yaw's translation voted on the points
+(``translation_vote.py``) gives the decision candidates, and every distinct vote peak is also a
+rival, so a street that does not pin the translation stays ambiguous.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from graffmatch.verification.config import VerificationConfig
+from graffmatch.verification.decision import Hypothesis, merge_hypotheses
+from graffmatch.verification.evidence import (
+    SupportCloud,
+    align_on_evidence,
+    occupancy_overlap,
+    point_overlaps,
+)
+from graffmatch.verification.translation_vote import vote_translations
+
+
+def _scored(hyps: list[Hypothesis], source: SupportCloud, target: SupportCloud, cfg: VerificationConfig,
+            exact: bool) -> None:
+    """``score``: mean share of both clouds explained (exact: KD distances; else occupancy)."""
+    Ts = np.stack([h.T_target_source for h in hyps])
+    parts = (point_overlaps if exact else occupancy_overlap)(source, target, Ts, cfg.inlier_m)
+    for h, (p0, p1) in zip(hyps, parts.tolist(), strict=True):
+        h.score_parts = (p0, p1)
+        h.score = 0.5 * (p0 + p1)
+
+
+def point_hypotheses(source: SupportCloud, target: SupportCloud, cfg: VerificationConfig,
+                     starts: tuple[NDArray[np.float64], ...] = ()) -> list[Hypothesis]:
+    """Hypotheses without associations (origin 'points'): yaws every ``point_yaw_step_deg`` at
+    zero translation and ``starts`` (e.g. odometry), each with its ``point_peaks`` strongest
+    translation votes, the starts also as they are; the ``point_align`` best by occupancy
+    aligned on the points and scored exactly (the caller merges them with the rest)."""
+    yaws = np.radians(np.arange(0.0, 360.0, cfg.point_yaw_step_deg))
+    sweep = np.repeat(np.eye(4)[None], len(yaws), axis=0)
+    sweep[:, 0, 0] = sweep[:, 1, 1] = np.cos(yaws)
+    sweep[:, 1, 0] = np.sin(yaws)
+    sweep[:, 0, 1] = -sweep[:, 1, 0]
+    first = [np.asarray(T, np.float64) for T in starts]
+    P, Q = source.sample(cfg.vote_points), target.sample(cfg.vote_points)
+    Ts = [T for S in [*first, *sweep] for T in vote_translations(
+        P, Q, S, cfg.vote_reach_m, cfg.vote_height_m, cfg.vote_cell_m, cfg.point_peaks)]
+    hyps = [Hypothesis(T, np.zeros((0, 2), np.int64), "points", 0.0, 1.0, False) for T in [*first, *Ts]]
+    if not hyps:
+        return []
+    _scored(hyps, source, target, cfg, exact=False)
+    hyps = merge_hypotheses(hyps, cfg)[: cfg.point_align]
+    for h in hyps:
+        h.info["T_landmarks"] = h.T_target_source
+        h.T_target_source = align_on_evidence(source, target, h.T_target_source)
+    _scored(hyps, source, target, cfg, exact=True)
+    return hyps
