@@ -48,3 +48,15 @@ def write_json(path: str | None, payload: dict) -> None:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(path).write_text(json.dumps(payload, indent=2, default=float))
         print(f"wrote {path}")
+
+
+def apply_verification_overrides(config, pairs: list[str]) -> None:
+    """``KEY=VALUE`` (JSON values) onto a loop config's ``verification``, or with a ``matcher.``
+    prefix onto its verified matcher's own (e.g. ``matcher.point_hypotheses=true``): labelled
+    variants of the defaults in the loop benchmarks."""
+    for kv in pairs:
+        key, val = kv.split("=", 1)
+        target = config.verification
+        if key.startswith("matcher."):
+            key, target = key.removeprefix("matcher."), config.matcher.verification
+        setattr(target, key, json.loads(val))

@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, peak_rss_mb
+from _common import apply_verification_overrides, machine, peak_rss_mb
 
 DRIVES = [("sim-downtown", 1), ("sim-downtown", 5), ("sim-suburban", 1), ("sim-suburban", 4),
           ("sim-openroad", 1), ("sim-openroad", 3)]
@@ -193,12 +193,7 @@ def main() -> None:
         groups = [([p for p in seqs if p.name != "balm_courtyard"], True),
                   ([p for p in seqs if p.name == "balm_courtyard"], False)]
     config = benchmark_config()
-    for kv in args.verification:  # a labelled variant of the defaults
-        key, val = kv.split("=", 1)
-        target = config.verification
-        if key.startswith("matcher."):  # the verified matcher's own (e.g. matcher.point_hypotheses=true)
-            key, target = key.removeprefix("matcher."), config.matcher.verification
-        setattr(target, key, json.loads(val))
+    apply_verification_overrides(config, args.verification)  # a labelled variant of the defaults
     if args.union == "off":
         config.retrieval.method = "descriptor"  # the default before session 10's end
     elif args.union:

@@ -38,7 +38,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import machine, write_json
+from _common import apply_verification_overrides, machine, write_json
 
 COURTYARD = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "balm_courtyard"
 DRIVES = ["sim-downtown-s1", "sim-downtown-s5", "sim-suburban-s1", "sim-suburban-s4", "sim-openroad-s1",
@@ -95,12 +95,7 @@ def main() -> None:
             print(drive, len(files), "scans")
             continue
         base = benchmark_config()
-        for kv in args.verification:  # a labelled variant of the defaults
-            key, val = kv.split("=", 1)
-            target = base.verification
-            if key.startswith("matcher."):  # the verified matcher's own (e.g. matcher.point_hypotheses=true)
-                key, target = key.removeprefix("matcher."), base.matcher.verification
-            setattr(target, key, json.loads(val))
+        apply_verification_overrides(base, args.verification)  # a labelled variant of the defaults
         db = LandmarkDatabase()
         # a de-skewed drive (bench_loops.py --deskew: "<name>+deskew") has its raw drive's times
         src = COURTYARD if drive == "balm_courtyard" else args.data / drive.removesuffix("+deskew")

@@ -358,6 +358,18 @@ def _with_scan_ranges(ls: LandmarkSet, scan: NDArray) -> LandmarkSet:
                        sensor_pose=ls.sensor_pose, scan_ranges=cell_minimum_ranges(np.asarray(scan, float)))
 
 
+def _scored(res, query: LandmarkSet, candidate: LandmarkSet, config: VerificationConfig
+            ) -> tuple[float | None, NDArray | None, int, float]:
+    """A match result's confidence (None if it has none), its transform (None if none) and the
+    landmarks that agree under it (count, overlap): what both passes record of a verdict."""
+    mconf = getattr(res, "confidence", None)
+    if res.T_target_source is None:
+        return (None if mconf is None else float(mconf)), None, 0, 0.0
+    T = np.asarray(res.T_target_source, float)
+    n_agree, overlap = landmark_agreement(query, candidate, T, config)
+    return (None if mconf is None else float(mconf)), T, n_agree, float(overlap)
+
+
 def scan_pass(
     query: LandmarkSet,
     candidate: LandmarkSet,
@@ -390,12 +402,10 @@ def scan_pass(
             out["scan_message"] = str(exc)
         if res is not None:
             out.update(scan_valid=bool(res.valid), scan_message=res.message, scan_origin=res.info.get("origin"))
-            mconf = getattr(res, "confidence", None)
-            out["scan_confidence"] = None if mconf is None else float(mconf)
-            if res.T_target_source is not None:
-                T = np.asarray(res.T_target_source, float)
-                n_agree, overlap = landmark_agreement(query, candidate, T, config)
-                out.update(scan_T=T, scan_n_agreeing=n_agree, scan_overlap=float(overlap))
+            mconf, T, n_agree, overlap = _scored(res, query, candidate, config)
+            out["scan_confidence"] = mconf
+            if T is not None:
+                out.update(scan_T=T, scan_n_agreeing=n_agree, scan_overlap=overlap)
     out["scan_seconds"] = time.perf_counter() - t0
     return out
 
@@ -458,14 +468,12 @@ def verify_candidate(
         inl = np.asarray(inl)
         out["n_associations"] = int(np.count_nonzero(inl) if inl.dtype == bool else inl.size)
     out["rms_offset"] = res.info.get("rms_offset")
-    mconf = getattr(res, "confidence", None)
-    out["matcher_confidence"] = None if mconf is None else float(mconf)
-    if res.T_target_source is not None:
-        T = np.asarray(res.T_target_source, float)
-        n_agree, overlap = landmark_agreement(query, candidate, T, config)
-        out.update(T_match_query=T, n_agreeing=n_agree, overlap=float(overlap))
+    mconf, T, n_agree, overlap = _scored(res, query, candidate, config)
+    out["matcher_confidence"] = mconf
+    if T is not None:
+        out.update(T_match_query=T, n_agreeing=n_agree, overlap=overlap)
         out["confidence"] = loop_confidence(
-            bool(res.valid), out["matcher_confidence"], n_agree, float(overlap),
+            bool(res.valid), out["matcher_confidence"], n_agree, overlap,
             float(np.linalg.norm(T[:3, 3])), config, on_points,
         )
     if query_scan is not None and candidate_scan is not None and out["confidence"] < config.min_confidence:
