@@ -151,6 +151,16 @@ class VerificationConfig(BaseModel):
     local_search_gain: float = Field(
         0.01, ge=0, description="a re-aligned leader replaces the leader when it explains this much more"
     )
+    settled_overlap: float | None = Field(
+        0.4, ge=0, le=1,
+        description="speed: on a whole-view pair (both coverages known and >= view_whole), when stage 2's exact "
+        "leader explains at least this share and no distinct hypothesis scores more than settled_rival_ratio of "
+        "it, the voted translations and the local search (which rescue near misses and find translation aliases) "
+        "are skipped; None: never. 0.4 / 0.6: of (0.3, 0.5) and (0.4, 0.6), the faster with no decision change "
+        "on the calibration split (bench/verification_rows.py) and its whole-view crops; ungated, both let wrong "
+        "answers through on cropped calibration views, hence the gate (docs/performance.md, Session 15)",
+    )
+    settled_rival_ratio: float = Field(0.6, ge=0, le=1, description="... see settled_overlap")
     vote_rotations: int = Field(
         1, ge=0, description="the leading distinct rotations whose translation is re-estimated by voting on "
         "the evidence points (0: off; full matcher only): right rotation, translation metres off (sim-downtown)",

@@ -148,6 +148,18 @@ def _distinct(h: Hypothesis, best: Hypothesis, cfg: VerificationConfig) -> bool:
     return rot > cfg.rival_deg or tr > cfg.rival_m
 
 
+def is_settled(merged: list[Hypothesis], leader: Hypothesis | None, cfg: VerificationConfig) -> bool:
+    """The exact leader (first of ``merged``) explains at least ``cfg.settled_overlap`` and every
+    distinct hypothesis scores at most ``cfg.settled_rival_ratio`` of it: the searches that rescue
+    near misses and find aliases have little left to find (off when ``settled_overlap`` is None)."""
+    if cfg.settled_overlap is None or leader is None or not merged or merged[0] is not leader:
+        return False
+    if leader.score < cfg.settled_overlap:
+        return False
+    rival = max((h.score for h in merged[1:] if _distinct(h, leader, cfg)), default=0.0)
+    return rival <= cfg.settled_rival_ratio * leader.score
+
+
 def confidence_of(score: float, rival_ratio: float, cfg: VerificationConfig, conflict: float = 0.0) -> float:
     """Calibrated probability that the best hypothesis is right (logistic, see config)."""
     c0, c1, c2, c3 = cfg.confidence_coef

@@ -21,6 +21,7 @@ from graffmatch.verification.decision import (
     Verdict,
     confidence_of,
     decide,
+    is_settled,
     merge_hypotheses,
     transform_gap,
 )
@@ -50,7 +51,7 @@ from graffmatch.verification.hypotheses import (
 )
 from graffmatch.verification.point_hypotheses import point_hypotheses
 from graffmatch.verification.translation_vote import vote_translations
-from graffmatch.verification.view import check_view
+from graffmatch.verification.view import check_view, whole_views
 
 
 @dataclass
@@ -541,13 +542,16 @@ def verify_graph(
             h.T_target_source = T
         score_hypotheses(merged, source, target, ev, cfg, exact=True)
         first = next((h for h in merged if not h.degenerate), None)  # stage 1's leader
-        if cfg.vote_rotations > 0 and not pair_cands and merged:
+        settled = is_settled(merged, first, cfg) and whole_views(ev, cfg)  # cropped views: not calibrated
+        if settled:
+            first.info["settled"] = True  # type: ignore[union-attr]
+        if cfg.vote_rotations > 0 and not pair_cands and merged and not settled:
             merged = merge_hypotheses(merged + _translation_votes(merged, source, target, ev, cfg), cfg)
         if point_hyps and not wide:  # the wide pass has them among ``prior``
             pts = point_hypotheses(ev.source, ev.target, cfg, ev.starts)  # type: ignore[arg-type]
             merged = merge_hypotheses(merged + pts, cfg)
         lead = next((h for h in merged if not h.degenerate), None)  # the best exact score
-        if cfg.local_search_m > 0:
+        if cfg.local_search_m > 0 and not settled:
             # both leaders: the exact leader may be a voted answer, and stage 1's leader a near
             # miss that only the local search turns right (courtyard)
             if lead is not None:

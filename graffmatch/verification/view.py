@@ -100,6 +100,14 @@ def covisible_overlap(source: SupportCloud, target: SupportCloud, T_target_sourc
     return out[0], out[1], ns, nt
 
 
+def whole_views(ev: Evidence, cfg: VerificationConfig) -> bool:
+    """Both scans' coverage is known and at least ``view_whole`` (a whole-scan pair)."""
+    if ev.source is None or ev.target is None or not ev.view:
+        return False
+    m_s, m_t = ev.source.view_mask(), ev.target.view_mask()
+    return m_s is not None and m_t is not None and min(float(m_s.mean()), float(m_t.mean())) >= cfg.view_whole
+
+
 def check_view(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -> None:
     """Partial views: when the smaller azimuth coverage of the two scans is below
     ``view_whole``, the winner must also explain ``partial_min_overlap`` (``narrow_min_overlap``
