@@ -43,6 +43,7 @@ from graffmatch.verification.cell_hash import (
     voxel_keys,
 )
 from graffmatch.verification.free_space import RangeImage
+from graffmatch.verification.view import view_mask_of
 
 
 @dataclass
@@ -73,10 +74,7 @@ class SupportCloud:
         """Which azimuth cells of the whole-scan range image hold a return (``view.azimuth_mask``,
         built once; None without ``scan_ranges`` or sensor pose: the view is unknown)."""
         if self._view is None:
-            from graffmatch.verification.view import azimuth_mask
-
-            mask = None if self.sensor_pose is None else azimuth_mask(self.scan_ranges)
-            self._view = (mask,)
+            self._view = (view_mask_of(self.sensor_pose, self.scan_ranges),)
         return self._view[0]
 
     def __len__(self) -> int:
@@ -441,6 +439,19 @@ def scan_cloud(points: NDArray, landmarks: LandmarkSet, voxel: float = 0.6,
         free = voxel_downsample(landmarks.points, voxel, 2 * max_points)
     return SupportCloud(P, free_points=free, sensor_pose=None if pose is None else pose.copy(),
                         scan_ranges=None if pose is None else landmarks.scan_ranges)
+
+
+def score_on_points(hyps: list, source: SupportCloud, target: SupportCloud, inlier_m: float, exact: bool) -> None:
+    """Fill each hypothesis' ``score_parts`` and ``score`` (the mean share of both clouds
+    explained): exact neighbour counts (:func:`point_overlaps`) or the voxel first pass
+    (:func:`occupancy_overlap`), all hypotheses in one call."""
+    if not hyps:
+        return
+    Ts = np.stack([h.T_target_source for h in hyps])
+    parts = (point_overlaps if exact else occupancy_overlap)(source, target, Ts, inlier_m)
+    for h, (p0, p1) in zip(hyps, parts.tolist(), strict=True):
+        h.score_parts = (p0, p1)
+        h.score = 0.5 * (p0 + p1)
 
 
 def point_overlaps(

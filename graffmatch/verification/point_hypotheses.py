@@ -15,23 +15,8 @@ from numpy.typing import NDArray
 
 from graffmatch.verification.config import VerificationConfig
 from graffmatch.verification.decision import Hypothesis, merge_hypotheses
-from graffmatch.verification.evidence import (
-    SupportCloud,
-    align_on_evidence,
-    occupancy_overlap,
-    point_overlaps,
-)
+from graffmatch.verification.evidence import SupportCloud, align_on_evidence, score_on_points
 from graffmatch.verification.translation_vote import vote_translations
-
-
-def _scored(hyps: list[Hypothesis], source: SupportCloud, target: SupportCloud, cfg: VerificationConfig,
-            exact: bool) -> None:
-    """``score``: mean share of both clouds explained (exact: KD distances; else occupancy)."""
-    Ts = np.stack([h.T_target_source for h in hyps])
-    parts = (point_overlaps if exact else occupancy_overlap)(source, target, Ts, cfg.inlier_m)
-    for h, (p0, p1) in zip(hyps, parts.tolist(), strict=True):
-        h.score_parts = (p0, p1)
-        h.score = 0.5 * (p0 + p1)
 
 
 def point_hypotheses(source: SupportCloud, target: SupportCloud, cfg: VerificationConfig,
@@ -52,10 +37,10 @@ def point_hypotheses(source: SupportCloud, target: SupportCloud, cfg: Verificati
     hyps = [Hypothesis(T, np.zeros((0, 2), np.int64), "points", 0.0, 1.0, False) for T in [*first, *Ts]]
     if not hyps:
         return []
-    _scored(hyps, source, target, cfg, exact=False)
+    score_on_points(hyps, source, target, cfg.inlier_m, exact=False)
     hyps = merge_hypotheses(hyps, cfg)[: cfg.point_align]
     for h in hyps:
         h.info["T_landmarks"] = h.T_target_source
         h.T_target_source = align_on_evidence(source, target, h.T_target_source)
-    _scored(hyps, source, target, cfg, exact=True)
+    score_on_points(hyps, source, target, cfg.inlier_m, exact=True)
     return hyps

@@ -34,6 +34,7 @@ from graffmatch.verification.evidence import (
     point_overlaps,
     prepared_support,
     scan_cloud,
+    score_on_points,
 )
 from graffmatch.verification.free_space import conflict_fraction
 from graffmatch.verification.hypotheses import (
@@ -461,16 +462,14 @@ def score_hypotheses(
     distances; otherwise one vectorised voxel lookup for all hypotheses (stage 1)."""
     if not hyps:
         return
-    Ts = np.stack([h.T_target_source for h in hyps])
-    if not ev.has_points:
-        counts: list = []
-        parts = landmark_overlap(source, target, Ts, cfg.landmark_deg, cfg.landmark_m, counts)
-        for h, c in zip(hyps, counts[0].tolist(), strict=True):
-            h.info["landmarks_explained"] = c
-    elif exact:
-        parts = point_overlaps(ev.source, ev.target, Ts, cfg.inlier_m)  # type: ignore[arg-type]
-    else:
-        parts = occupancy_overlap(ev.source, ev.target, Ts, cfg.inlier_m)  # type: ignore[arg-type]
+    if ev.has_points:
+        score_on_points(hyps, ev.source, ev.target, cfg.inlier_m, exact)  # type: ignore[arg-type]
+        return
+    counts: list = []
+    parts = landmark_overlap(source, target, np.stack([h.T_target_source for h in hyps]), cfg.landmark_deg,
+                             cfg.landmark_m, counts)
+    for h, c in zip(hyps, counts[0].tolist(), strict=True):
+        h.info["landmarks_explained"] = c
     for h, (p0, p1) in zip(hyps, parts.tolist(), strict=True):
         h.score_parts = (p0, p1)
         h.score = 0.5 * (p0 + p1)

@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from graffmatch.geometry.transforms import invert
 
 if TYPE_CHECKING:
+    from graffmatch.geometry.landmarks import LandmarkSet
     from graffmatch.verification.config import VerificationConfig
     from graffmatch.verification.decision import Verdict
     from graffmatch.verification.evidence import SupportCloud
@@ -54,13 +55,25 @@ def coverage(mask: NDArray[np.bool_] | None) -> float:
     return 1.0 if mask is None or len(mask) == 0 else float(np.mean(mask))
 
 
-def set_coverage(landmarks: object) -> float | None:
-    """Coverage of a landmark set's scan (its ``scan_ranges`` image), None when unknown (no
-    image or no sensor pose), as :meth:`SupportCloud.view_mask` judges it."""
-    if getattr(landmarks, "sensor_pose", None) is None:
-        return None
-    mask = azimuth_mask(getattr(landmarks, "scan_ranges", None))
+def view_mask_of(sensor_pose: NDArray | None, scan_ranges: NDArray | None) -> NDArray[np.bool_] | None:
+    """:func:`azimuth_mask` of a scan's image, None when the view is unknown (no image, or no
+    sensor pose: a map-frame set, whose image says nothing about where a sensor looked)."""
+    return None if sensor_pose is None else azimuth_mask(scan_ranges)
+
+
+def set_coverage(landmarks: LandmarkSet) -> float | None:
+    """Coverage of a landmark set's scan, None when unknown (as :meth:`SupportCloud.view_mask`)."""
+    mask = view_mask_of(landmarks.sensor_pose, landmarks.scan_ranges)
     return None if mask is None else coverage(mask)
+
+
+def pair_view(ev: Evidence) -> tuple[float, float] | None:
+    """Both clouds' coverage, None when either is unknown or the images are not whole-scan
+    views (``Evidence.view`` False)."""
+    if ev.source is None or ev.target is None or not ev.view:
+        return None
+    m_s, m_t = ev.source.view_mask(), ev.target.view_mask()
+    return None if m_s is None or m_t is None else (float(m_s.mean()), float(m_t.mean()))
 
 
 def _inside(points: NDArray[np.float64], M: NDArray[np.float64], mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
@@ -102,10 +115,8 @@ def covisible_overlap(source: SupportCloud, target: SupportCloud, T_target_sourc
 
 def whole_views(ev: Evidence, cfg: VerificationConfig) -> bool:
     """Both scans' coverage is known and at least ``view_whole`` (a whole-scan pair)."""
-    if ev.source is None or ev.target is None or not ev.view:
-        return False
-    m_s, m_t = ev.source.view_mask(), ev.target.view_mask()
-    return m_s is not None and m_t is not None and min(float(m_s.mean()), float(m_t.mean())) >= cfg.view_whole
+    v = pair_view(ev)
+    return v is not None and min(v) >= cfg.view_whole
 
 
 def check_view(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -> None:
@@ -117,22 +128,20 @@ def check_view(verdict: Verdict, ev: Evidence, cfg: VerificationConfig) -> None:
     scan sees only a sector (docs/verification.md, Sessions 14 and 15). Whole-scan pairs, and sets
     without a whole-scan range image, are left as they are (the view is then not known). Cost: the
     coverage is built once per evidence cloud; a partial pair adds one co-visible count (~0.25 ms)."""
-    if ev.source is None or ev.target is None or verdict.best is None or not ev.view:
-        return
-    m_s, m_t = ev.source.view_mask(), ev.target.view_mask()
-    if m_s is None or m_t is None:
+    v = pair_view(ev)
+    if v is None or verdict.best is None:
         return
     best = verdict.best
-    c_s, c_t = float(m_s.mean()), float(m_t.mean())
-    best.info["view_coverage"] = (c_s, c_t)
-    view = min(c_s, c_t)
+    best.info["view_coverage"] = v
+    view = min(v)
     if view >= cfg.view_whole:
         return
     if view >= cfg.view_narrow:
         tier, min_ov, max_ratio = "partial", cfg.partial_min_overlap, cfg.partial_max_rival_ratio
     else:
         tier, min_ov, max_ratio = "narrow", cfg.narrow_min_overlap, cfg.narrow_max_rival_ratio
-    p0, p1, _, _ = covisible_overlap(ev.source, ev.target, best.T_target_source, cfg.inlier_m, m_s, m_t)
+    p0, p1, _, _ = covisible_overlap(ev.source, ev.target, best.T_target_source, cfg.inlier_m,  # type: ignore[arg-type]
+                                     ev.source.view_mask(), ev.target.view_mask())  # type: ignore[union-attr]
     cov = 0.5 * (p0 + p1)
     best.info["covisible_overlap"] = (p0, p1)
     if cov < min_ov:
