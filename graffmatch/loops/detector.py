@@ -93,7 +93,7 @@ class LoopDetector:
         stored landmarks): its non-ground points (the extractor's ``last_cloud``) voxelised and capped
         as raw-scan evidence uses them (``scan_voxel``, ``scan_max_points``), on the storage grid;
         None otherwise. Why: landmark-poor pairs can then be verified on whole scans (verify.scan_pass)."""
-        if cloud_points is None or len(stored) >= self.config.verification.scan_cloud_below:
+        if cloud_points is None or not self.config.verification.keeps_scan_cloud(len(stored)):
             return None
         v = self.config.matcher.verification
         P = voxel_downsample(np.asarray(cloud_points, float).reshape(-1, 3), v.scan_voxel, v.scan_max_points)
@@ -219,7 +219,7 @@ class LoopDetector:
         """Scan i's stored scan cloud (None: it keeps none, or has ``scan_cloud_below`` landmarks or
         more: a database stored with a larger setting verifies as this config says)."""
         scans = self.db.extra.get("scan")
-        if scans is None or i >= len(scans) or len(self.db.landmarks[i]) >= self.config.verification.scan_cloud_below:
+        if scans is None or i >= len(scans) or not self.config.verification.keeps_scan_cloud(len(self.db.landmarks[i])):
             return None
         return scans[i]
 

@@ -161,7 +161,7 @@ def _verify_task(args: tuple[str, str, str, list[tuple[int, list[tuple[int, floa
         return _CACHE.get(_CACHE.landmarks, i, lambda: load_landmarks(Path(out_dir) / LANDMARK_DIR / f"{i:06d}.npz"))
 
     def scan(i: int):
-        if len(lm(i)) >= config.verification.scan_cloud_below:  # as LoopDetector.scan_of
+        if not config.verification.keeps_scan_cloud(len(lm(i))):
             return None
         return _CACHE.get(_CACHE.scans, i, lambda: load_scan_cloud(Path(out_dir) / LANDMARK_DIR / f"{i:06d}.npz"))
 

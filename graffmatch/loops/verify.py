@@ -219,6 +219,11 @@ class VerificationConfig(BaseModel):
         "reaches min_confidence (one loop a query); False: verify every candidate",
     )
 
+    def keeps_scan_cloud(self, n_landmarks: int) -> bool:
+        """A scan with this many stored landmarks keeps its scan cloud and is verified on it (a
+        database stored with a larger ``scan_cloud_below`` verifies as this config says)."""
+        return n_landmarks < self.scan_cloud_below
+
 
 @dataclass
 class LoopClosure:
