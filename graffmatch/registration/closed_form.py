@@ -480,6 +480,24 @@ def _svd3(H: Array, R: Array, S: Array, u0: Array, v0: Array, wk: Array, sig: Ar
         for i in range(3):
             Vs[i, jj] = V[i, j]
             U[i, jj] = A[i, j] / sig[j] if (jj < 2 and sig[j] > 0) else 0.0
+    if S[0] > 0 and not S[1] > 0:  # rank 1: complete U with a unit vector across u0 (any
+        # would do; the axis least along u0 keeps it well conditioned), so R stays a rotation
+        k = 0
+        for i in range(1, 3):
+            if abs(U[i, 0]) < abs(U[k, 0]):
+                k = i
+        n = 0.0
+        for i in range(3):
+            e = 1.0 if i == k else 0.0
+            U[i, 1] = e - U[k, 0] * U[i, 0]
+            n += U[i, 1] * U[i, 1]
+        n = np.sqrt(n)
+        for i in range(3):
+            U[i, 1] /= n
+    elif not S[0] > 0:  # H = 0 (V the identity): the identity rotation
+        for i in range(3):
+            for j in range(2):
+                U[i, j] = Vs[i, j]
     U[0, 2] = U[1, 0] * U[2, 1] - U[2, 0] * U[1, 1]
     U[1, 2] = U[2, 0] * U[0, 1] - U[0, 0] * U[2, 1]
     U[2, 2] = U[0, 0] * U[1, 1] - U[1, 0] * U[0, 1]

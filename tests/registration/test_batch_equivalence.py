@@ -365,3 +365,73 @@ def test_parallel_planes_take_the_exact_path() -> None:
         cf._register_batch_reference = orig
     assert called == []
     assert _bit_equal(out, orig(src, tgt, A, None, None, 1e3, 1)) == []
+
+
+def _free_rotation_case(rng, n_planes: int, tilt: float):
+    """Near-parallel planes (a street's walls) plus a pole: groups of only the planes have a
+    rank-deficient correlation (a rotation left free about the common normal)."""
+    normals = np.tile([0.0, 1.0, 0.0], (n_planes, 1)) + rng.normal(0, tilt, (n_planes, 3))
+    normals *= rng.choice([-1.0, 1.0], (n_planes, 1))
+    dirs = np.r_[normals, [[0.0, 0.0, 1.0]]]
+    anchors = np.c_[rng.uniform(-20, 20, n_planes + 1), rng.uniform(-8, 8, n_planes + 1), rng.uniform(0, 3, n_planes + 1)]
+    tgt = LandmarkSet.from_arrays(np.r_[np.full(n_planes, 2), 1], dirs, anchors)
+    src = tgt.transform(np.linalg.inv(random_transform(rng, 15.0)))
+    src = LandmarkSet.from_arrays(src.types, src.directions + rng.normal(0, 1e-3, (n_planes + 1, 3)),
+                                  src.anchors + rng.normal(0, 0.02, (n_planes + 1, 3)))
+    return src, tgt
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), n_planes=st.integers(2, 5), tilt=st.sampled_from([0.0, 1e-9, 1e-4]))
+def test_free_rotations_keep_the_kernels_result(seed: int, n_planes: int, tilt: float) -> None:
+    """``reference_free_rotations=False``: a degenerate group whose rotation the directions leave
+    free keeps the kernel's result, which is still a proper rotation (exactly parallel walls
+    included) that maps every direction of the group onto its counterpart as the reference's
+    does (|dt . R ds| within 1e-6 of the reference's), degenerate like it; every other group is
+    bit for bit the default's."""
+    rng = np.random.default_rng(seed)
+    src, tgt = _free_rotation_case(rng, n_planes, tilt)
+    idx = np.arange(n_planes)
+    groups = [idx, idx[:2], np.r_[idx, n_planes], idx[::-1]]  # planes only (free), planes + pole
+    A = np.concatenate([np.stack([gr, gr], 1) for gr in groups])
+    g = np.concatenate([np.full(len(gr), i) for i, gr in enumerate(groups)])
+    default, reasons = cf._register_batch_numba(src, tgt, A, g, None, 1e3, None, 0.03, 0.01, 1e-2)
+    fast = cf.register_batch(src, tgt, A, g, reference_free_rotations=False)
+    kept = ((reasons & 32) != 0) & ((reasons & ~cf.FREE_ROTATION_REASONS) == 0) & (default.kappa_rotation > 1e3)
+    assert not kept[2], reasons  # the pole fixes the rotation (the walls alone: also cost ties)
+    for name in _FIELDS:
+        sel = ~kept[g] if name in ("angle_residuals_deg", "offset_residuals", "signs") else ~kept
+        np.testing.assert_array_equal(getattr(fast, name)[sel], getattr(default, name)[sel], err_msg=name)
+    np.testing.assert_array_equal(fast.degenerate, default.degenerate)
+    ds, dt = cf._directions_of(src)[A[:, 0]], cf._directions_of(tgt)[A[:, 1]]
+    for gi in np.flatnonzero(kept):
+        R = fast.T_target_source[gi, :3, :3]
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+        assert abs(np.linalg.det(R) - 1.0) < 1e-12
+        rows = g == gi
+        dots = np.abs(np.einsum("ij,ij->i", dt[rows], ds[rows] @ R.T))
+        ref_dots = np.abs(np.einsum("ij,ij->i", dt[rows], ds[rows] @ default.T_target_source[gi, :3, :3].T))
+        np.testing.assert_allclose(dots, ref_dots, atol=1e-6)  # second order in the tilt (<= 1e-4)
+
+
+def test_free_rotations_skip_the_reference() -> None:
+    """The street's three near-parallel walls (reason 32 alone): with
+    ``reference_free_rotations=False`` neither the reference nor its exact path runs, and the
+    same inputs give the same bits twice."""
+    n = np.array([[-0.0365, 0.9987, -0.0349], [0.0491, -0.9978, 0.0437], [0.043, -0.9989, 0.0192]])
+    tgt = LandmarkSet.from_arrays(np.full(3, 2), n, np.array([[3.0, 8.0, 0.5], [-4.0, -7.5, 1.0], [10.0, -8.2, 0.2]]))
+    src = tgt.transform(np.linalg.inv(random_transform(np.random.default_rng(1), 5.0)))
+    src = LandmarkSet.from_arrays(src.types, src.directions + 1e-3 * np.eye(3)[[0, 2, 1]], src.anchors)
+    A = np.stack([np.arange(3)] * 2, 1)
+    called = []
+    orig_ref, orig_exact = cf._register_batch_reference, cf._solve_exactly
+    cf._register_batch_reference = lambda *a, **k: called.append("ref") or orig_ref(*a, **k)
+    cf._solve_exactly = lambda *a, **k: called.append("exact") or orig_exact(*a, **k)
+    try:
+        a = cf.register_batch(src, tgt, A, reference_free_rotations=False)
+        b = cf.register_batch(src, tgt, A, reference_free_rotations=False)
+    finally:
+        cf._register_batch_reference, cf._solve_exactly = orig_ref, orig_exact
+    assert called == []
+    assert _bit_equal(a, b) == []
+    assert bool(a.degenerate[0]) and a.kappa_rotation[0] > 1e3
