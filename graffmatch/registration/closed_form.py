@@ -414,10 +414,10 @@ FRAGILE_REASONS = {
     1024: "cost tie between different sign assignments", 2048: "rank threshold met within rounding",
     4096: "kappa at kappa_max within rounding",
 }
-#: The reasons a group whose rotation the directions leave free may have (rank-deficient
-#: correlation, and then a near-singular translation): ``register_batch(...,
-#: reference_free_rotations=False)`` keeps the kernel's result for them when degenerate.
-FREE_ROTATION_REASONS = 32 | 256 | 512
+#: Fragility that only says a group is ill-conditioned (a rank-deficient correlation, a
+#: near-singular translation system): ``register_batch(..., reference_degenerate=False)`` keeps
+#: the kernel's result for a degenerate group fragile for these reasons alone.
+CONDITIONING_REASONS = 32 | 256 | 512
 
 
 @nb.njit(cache=True)
@@ -1166,7 +1166,7 @@ def register_batch(
     line_anchor_weight: float = 0.01,
     weak_ratio: float = 1e-2,
     upright_min: float = UPRIGHT_MIN,
-    reference_free_rotations: bool = True,
+    reference_degenerate: bool = True,
 ) -> BatchRegistration:
     """Register many association groups at once (one compiled loop over groups).
 
@@ -1186,25 +1186,25 @@ def register_batch(
     ties, thresholds met within rounding, empty groups) are solved by the numpy reference, so
     the arbitrary choices there are the same as in that (LAPACK) implementation.
 
-    ``reference_free_rotations=False`` keeps the kernel's own result for a fragile group whose
-    rotation the directions leave free (a rank-deficient correlation: parallel planes, one
-    pole), degenerate at ``kappa_max`` (rotation condition number above it) and fragile for no
-    other reason than that and a near-singular translation (:data:`FREE_ROTATION_REASONS`).
-    Such a group's rotation about the free axis is an arbitrary choice in any implementation
-    (LAPACK's is no better than the kernel's); it can never be a valid answer, only a rival.
+    ``reference_degenerate=False`` keeps the kernel's own result for a fragile group that is
+    degenerate at ``kappa_max`` and fragile only because it is ill-conditioned
+    (:data:`CONDITIONING_REASONS`): a rotation the directions leave free (parallel walls, one
+    pole) or a translation they leave free (walls only: the height). What such a group gives
+    along its free axes is an arbitrary choice in any implementation (LAPACK's is no better than
+    the kernel's), and a degenerate hypothesis can never be a valid answer, only a rival.
     Verification registers ~90 hypotheses a match and takes this (the reference costs ~1.5 ms a
     call); the default keeps every result equal to the reference's.
     """
     return _register_batch_numba(source, target, associations, groups, weights, kappa_max, n_groups,
                                  parallel_spread, line_anchor_weight, weak_ratio, upright_min,
-                                 reference_free_rotations)[0]
+                                 reference_degenerate)[0]
 
 
 def _register_batch_numba(
     source: LandmarkSet, target: LandmarkSet, associations: ArrayLike, groups: ArrayLike | None,
     weights: ArrayLike | None, kappa_max: float, n_groups: int | None, parallel_spread: float,
     line_anchor_weight: float, weak_ratio: float, upright_min: float = UPRIGHT_MIN,
-    reference_free_rotations: bool = True,
+    reference_degenerate: bool = True,
 ) -> tuple[BatchRegistration, NDArray[np.int64]]:
     """:func:`register_batch` plus each group's fragility bits (:data:`FRAGILE_REASONS`)."""
     A = np.ascontiguousarray(np.asarray(associations, dtype=np.int64).reshape(-1, 2))
@@ -1260,8 +1260,8 @@ def _register_batch_numba(
     )
     T, kappa, k_rot, k_tr, rot_rank, tr_rank, degenerate = _finish_batch(R, t, S, lam, float(kappa_max), reasons)
     fragile = reasons != 0
-    if not reference_free_rotations:  # see register_batch
-        fragile &= ~(((reasons & 32) != 0) & ((reasons & ~FREE_ROTATION_REASONS) == 0) & (k_rot > kappa_max))
+    if not reference_degenerate:  # see register_batch
+        fragile &= ~(((reasons & ~CONDITIONING_REASONS) == 0) & (kappa > kappa_max))
     out = BatchRegistration(
         T_target_source=T, kappa=kappa, kappa_rotation=k_rot, kappa_translation=k_tr,
         degenerate=degenerate, rotation_rank=rot_rank, translation_rank=tr_rank,

@@ -110,7 +110,7 @@ def _register(
     groups = np.repeat(np.arange(len(cands)), lengths)
     A = assoc[np.concatenate(verts)]
     try:
-        b = register_batch(source, target, A, groups, None, kappa_max, len(cands), reference_free_rotations=False)
+        b = register_batch(source, target, A, groups, None, kappa_max, len(cands), reference_degenerate=False)
     except DegenerateGeometryError:
         return []
     bounds = [0, *np.cumsum(lengths).tolist()]
@@ -213,7 +213,7 @@ def _trimmed(hyps: list[Hypothesis], source: LandmarkSet, target: LandmarkSet, a
             lengths, origin = lengths[sel], origin[sel]
         try:
             b = register_batch(source, target, associations[verts], np.repeat(np.arange(len(lengths)), lengths),
-                               None, kappa_max, len(lengths), reference_free_rotations=False)
+                               None, kappa_max, len(lengths), reference_degenerate=False)
         except DegenerateGeometryError:
             break
         Ts, kappa, degenerate = b.T_target_source, b.kappa, b.degenerate
