@@ -131,7 +131,7 @@ def main() -> None:
             warm = (time.perf_counter() - t_w, time.process_time() - c_w)
             qs = [q for q in range(0, len(db), args.stride) if eligible_count(db.timestamps, q, cfg.retrieval) > 0]
             per, cpu, ver_s, nver, nloop = [], [], [], [], 0
-            ret_s, quick_s, npass, ncand, nver_pts, nscan = [], [], [], [], [], []
+            ret_s, quick_s, npass, ncand, nver_pts, nscan, nscreen = [], [], [], [], [], [], []
             load_a = os.getloadavg()[0]
             for q in qs:
                 c0 = time.process_time()
@@ -149,6 +149,7 @@ def main() -> None:
                 ncand.append(len(recs))
                 nver_pts.append(sum(bool(r.get("on_points")) for r in recs if r["verified"]))
                 nscan.append(sum("scan_valid" in r for r in recs if r["verified"]))
+                nscreen.append(sum("screen_prior" in r for r in recs))  # session 16's first screen
                 if rec_f:
                     rec_f.write(json.dumps({
                         "drive": drive, "mode": mode, "query": q, "ms": 1e3 * per[-1], "cpu_ms": 1e3 * cpu[-1],
@@ -176,6 +177,7 @@ def main() -> None:
                    "candidates_per_query": float(np.mean(ncand)), "candidates_per_query_max": int(np.max(ncand)),
                    "verified_on_points_per_query": float(np.mean(nver_pts)),
                    "scan_passes_per_query": float(np.mean(nscan)),
+                   "screens_per_query": float(np.mean(nscreen)),
                    "scans_with_scan_cloud": sum(x is not None for x in db.extra["scan"]),
                    "retriever": cfg.retrieval.method if poses is not None else "descriptor (no positions)",
                    "odometry": None if poses is None else str(odo),

@@ -66,6 +66,9 @@ def run_config(k_max: int):
     v.max_verified = 100  # every passing candidate (and every cloud pair) of the retrieval
     v.scans_min_confidence = 1.0  # record the scan pass, never let it replace the landmark pass
     v.scans_min_agreeing = 10**6
+    v.scans_skip_max = None  # every quick-rejected cloud pair, no first screen (session 16's defaults)
+    v.scans_screen_min_ratio = None
+    cfg.matcher.verification.point_hypotheses = False  # session 15's matcher (15b turns them on)
     return cfg
 
 

@@ -30,6 +30,7 @@ from graffmatch.loops.descriptor import DescriptorConfig, landmark_descriptor
 from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_check_many, quick_index
 from graffmatch.loops.retrieval import RetrievalConfig, eligible_count, make_retriever
 from graffmatch.loops.verify import (
+    LOOP_POINT_HYPOTHESES,
     LoopClosure,
     VerificationConfig,
     scan_pass,
@@ -42,6 +43,14 @@ from graffmatch.verification.evidence import evidence_points as matcher_evidence
 from graffmatch.verification.evidence import voxel_downsample
 
 
+def loop_matcher_config() -> GraffMatchConfig:
+    """The loop detector's verified matcher: the defaults with point hypotheses on (they only act on
+    the scan pass's raw-scan evidence; ``verify.LOOP_POINT_HYPOTHESES``, session 16)."""
+    cfg = GraffMatchConfig()
+    cfg.verification.point_hypotheses = LOOP_POINT_HYPOTHESES
+    return cfg
+
+
 class LoopDetectorConfig(BaseModel):
     """Everything that decides which loops are found (written next to every result)."""
 
@@ -49,7 +58,7 @@ class LoopDetectorConfig(BaseModel):
 
     extractor: LandmarkExtractorConfig = Field(default_factory=LandmarkExtractorConfig)
     use_labels: bool = Field(True, description="use semantic labels when the dataset has them")
-    matcher: GraffMatchConfig = Field(default_factory=GraffMatchConfig)
+    matcher: GraffMatchConfig = Field(default_factory=loop_matcher_config)
     descriptor: DescriptorConfig = Field(default_factory=DescriptorConfig)
     retrieval: RetrievalConfig = Field(default_factory=RetrievalConfig)
     verification: VerificationConfig = Field(default_factory=VerificationConfig)
@@ -256,6 +265,7 @@ class LoopDetector:
         recs = verify_query(
             query, list(zip(idx.tolist(), dist.tolist(), strict=True)), self.db.landmarks.__getitem__,
             self.quick_index, self.matcher, self.config.verification, self.config.quick, self.scan_of,
+            lambda i: self._poses[i] if i < len(self._poses) else None,
         )
         recs = self._consistent(query, recs)
         out = []

@@ -148,9 +148,13 @@ class _ScanCache:
 _CACHE = _ScanCache()
 
 
-def _verify_task(args: tuple[str, str, str, list[tuple[int, list[tuple[int, float]]]], bool]) -> list[dict]:
-    """Worker: verify a chunk of queries (kernels warmed up first, once a process); a record a query."""
-    out_dir, database_key, config_json, chunk, warm_points = args
+def _verify_task(args: tuple) -> list[dict]:
+    """Worker: verify a chunk of queries (kernels warmed up first, once a process); a record a query.
+
+    ``args``: out_dir, database key, config JSON, the chunk's (query, candidates), whether to warm up
+    the point kernels, and the odometry poses of the chunk's scans ({scan: 4x4}, or None)."""
+    out_dir, database_key, config_json, chunk, warm_points = args[:5]
+    poses = args[5] if len(args) > 5 else None
     config = LoopDetectorConfig.model_validate_json(config_json)
     det = LoopDetector(config)
     _CACHE.reset((out_dir, database_key + config.quick.model_dump_json()))
@@ -183,12 +187,19 @@ def _verify_task(args: tuple[str, str, str, list[tuple[int, list[tuple[int, floa
                 qi(j)
         t0, c0 = time.perf_counter(), time.process_time()
         recs = verify_query(q, cands, lm, qi, det.matcher, config.verification, config.quick,
-                            scan if config.verification.scan_cloud_below > 0 else None)
+                            scan if config.verification.scan_cloud_below > 0 else None,
+                            None if poses is None else poses.get)
         records.append({"query": int(q), "candidates": recs, "verify_s": time.perf_counter() - t0, "verify_cpu_s": time.process_time() - c0})
     if records:
         records[-1]["index_s"] = index_s[0]
         records[0].update(warmup_s=warm_s, warmup_cpu_s=warm_cpu_s)  # 0 when done before
     return records
+
+
+def _chunk_poses(odometry: NDArray, chunk: list[tuple[int, list[tuple[int, float]]]]) -> dict[int, NDArray]:
+    """The odometry poses a chunk's queries and candidates need (not the whole drive's, per task)."""
+    ids = {i for q, cands in chunk for i in [q, *(j for j, _ in cands)]}
+    return {i: odometry[i] for i in sorted(ids)}
 
 
 def read_queries(out_dir: str | Path) -> dict[int, dict]:
@@ -426,7 +437,8 @@ def run_loops(
             n_done = 0
             try:
                 warm_points = sum(ls.points is not None for ls in db.landmarks) >= 2  # a pair on points
-                tasks = [(str(out), stats["database_key"], cfg_json, c, warm_points) for c in chunks]
+                tasks = [(str(out), stats["database_key"], cfg_json, c, warm_points,
+                          None if odometry is None else _chunk_poses(odometry, c)) for c in chunks]
                 for _, recs in ex.imap_unordered(_verify_task, tasks):
                     for rec in recs:
                         f.write(json.dumps(rec) + "\n")

@@ -25,7 +25,9 @@ from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_check_many
 from graffmatch.matcher import GraffMatcher
 from graffmatch.pipeline import ScanMatcher
+from graffmatch.verification.evidence import scan_cloud
 from graffmatch.verification.free_space import cell_minimum_ranges
+from graffmatch.verification.point_hypotheses import prior_contrast
 from graffmatch.verification.verify import scan_evidence
 
 #: Defaults chosen on the calibration drives (other seeds of the benchmark's environments), never on
@@ -63,17 +65,28 @@ CONSISTENCY_MAX_DEG = 2.0
 #: the stricter). The rule's first pick also verified cloud pairs the quick check rejects (+1 query on
 #: downtown 4, with 2 agreeing landmarks); that is off: it cost downtown 4 37.5 against 26.3 ms a query
 #: (k = 5, bench_loops_speed.py) and downtown-s1 32-34 against 12-13 ms, over the 20 ms target, for the
-#: same downtown-s1 recall (docs/loops.md, session 15); without it the rule's tie-break gives 3.
+#: same downtown-s1 recall (docs/loops.md, session 15); without it the rule's tie-break gives 3. Session 16
+#: turns it on behind a first screen (below), which keeps the time.
 SCAN_CLOUD_BELOW = 8
 SCANS_MIN_CONFIDENCE = 0.99
 SCANS_MIN_AGREEING = 3
-SCANS_SKIP_QUICK_CHECK = False
-#: Scan verdicts whose winner came from the points themselves (the matcher's
-#: ``verification.point_hypotheses``, off by default: a landmark-poor pair gives the graph < 3
-#: associations): their own fewest agreeing landmarks, and how many quick-rejected cloud pairs a
-#: query verifies (session 15b; calibration in bench/loops_calibration_points15b.py).
-SCANS_POINTS_MIN_AGREEING = 3
-SCANS_SKIP_MAX: int | None = None
+SCANS_SKIP_QUICK_CHECK = True
+#: Session 16 (bench/loops_calibration_points15b.py --grid 16, bench/results/loops_calibration_session16.json;
+#: docs/loops.md session 16): the loop matcher's ``verification.point_hypotheses`` on (a landmark-poor pair
+#: gives the graph < 3 associations; LOOP_POINT_HYPOTHESES), quick-rejected cloud pairs verified after
+#: a first screen at the odometry's relative pose (``scans_screen_min_ratio`` 3: the occupancy at the
+#: odometry's yaw at least 3 times the best a quarter turn or more away), at most 1 a query, nearest by
+#: the odometry first, a point-won scan verdict needing no agreeing landmark (0: a two-landmark query
+#: cannot show three), and candidates whose quick estimate lies beyond the place radius less the margin
+#: verified last. Chosen on the eight calibration drives by the rule written before the grid: no wrong
+#: loop under the policy, none in the stress set (61 right), the most summed e2e R@100%P (7.638 ->
+#: 7.746), ties to the stricter (the largest ratio of the grid 1.5-3, the smallest cap of 1-3).
+#: Without odometry the screen cannot run and quick-rejected pairs are not verified (as before).
+LOOP_POINT_HYPOTHESES = True
+SCANS_POINTS_MIN_AGREEING = 0
+SCANS_SKIP_MAX: int | None = 1
+SCANS_SCREEN_MIN_RATIO: float | None = 3.0
+QUICK_ORDER_RADIUS = True
 
 
 class VerificationConfig(BaseModel):
@@ -185,6 +198,21 @@ class VerificationConfig(BaseModel):
         SCANS_SKIP_MAX, ge=0,
         description="with scans_skip_quick_check: verify at most this many quick-rejected cloud pairs a query "
         "(best quick score, then retrieval rank, first; None: as many as max_verified leaves)",
+    )
+    scans_screen_min_ratio: float | None = Field(
+        SCANS_SCREEN_MIN_RATIO, gt=0,
+        description="with scans_skip_quick_check and odometry: quick-rejected cloud pairs are taken nearest by the "
+        "odometry first, at most scans_skip_max of them are screened (verification.point_hypotheses.prior_contrast: "
+        "occupancy of translation votes at the odometry's yaw against a quarter turn or more away, ~1 ms) and only "
+        "those whose contrast reaches this ratio are verified (the full scan pass costs 17-27 ms); None: no screen, "
+        "best quick score first",
+    )
+    quick_order_radius: bool = Field(
+        QUICK_ORDER_RADIUS,
+        description="with max_translation_m: verify the candidates whose quick estimate (at least "
+        "quick_translation_min_inliers inliers) lies beyond max_translation_m minus place_margin_m after the others: "
+        "they cannot become loops when the estimate is right, and they used the verification budget of queries "
+        "whose partners lie 4.7-5 m away (sim-downtown-s1, docs/loops.md session 16); the least beyond first",
     )
     max_landmarks_per_type: int | None = Field(
         40, ge=2, description="match at most this many landmarks of a type (largest first)"
@@ -494,6 +522,82 @@ def verify_candidate(
     return out
 
 
+def verification_plan(
+    recs: list[dict], config: VerificationConfig, has_scan: Callable[[int], bool],
+    odometry_distance: Callable[[int], float | None],
+) -> tuple[list[dict], list[dict]]:
+    """(candidates passing the quick check in the order they are verified, quick-rejected cloud pairs
+    that may follow): one rule for :func:`verify_query` and the calibration replay.
+
+    Passing candidates: best quick score first, then retrieval rank; with ``quick_order_radius``
+    those whose quick estimate (``quick_translation_min_inliers`` or more inliers) lies beyond the
+    place radius less the margin go last, the least beyond first. Quick-rejected pairs of two scans with clouds
+    (``scans_skip_quick_check``): with ``scans_screen_min_ratio`` only those with odometry, nearest by
+    the odometry first (a landmark-poor query has no quick score to rank by); else best quick score
+    first; at most ``scans_skip_max``. ``has_scan(j)``: both the query and j keep scan clouds."""
+    def key(r: dict) -> tuple:
+        t = r.get("quick_translation_m", 0.0)
+        beyond = bool(
+            config.quick_order_radius and config.max_translation_m is not None
+            and r["quick_score"] >= config.quick_translation_min_inliers
+            and t > config.max_translation_m - config.place_margin_m)
+        # beyond ones nearest first: the quick estimate is off by decimetres to metres (balm_courtyard:
+        # 4.76 m quick, 4.66 m verified), so the least beyond is the likeliest to lie inside after all
+        return (1, t, -r["quick_score"], r["rank"]) if beyond else (0, 0.0, -r["quick_score"], r["rank"])
+
+    order = sorted((r for r in recs if r["quick_pass"]), key=key)
+    extra: list[dict] = []
+    if config.scans_skip_quick_check:
+        extra = [r for r in recs if not r["quick_pass"] and has_scan(r["match"])]
+        for r in extra:
+            r["quick_pass_scans"] = True
+        if config.scans_screen_min_ratio is not None:
+            dist = {r["match"]: odometry_distance(r["match"]) for r in extra}
+            extra = sorted((r for r in extra if dist[r["match"]] is not None),
+                           key=lambda r: (dist[r["match"]], r["rank"]))
+        else:
+            extra = sorted(extra, key=lambda r: (-r["quick_score"], r["rank"]))
+        if config.scans_skip_max is not None:
+            extra = extra[: config.scans_skip_max]
+    return order, extra
+
+
+def screens_in(contrast: tuple[float, float], config: VerificationConfig) -> bool:
+    """Whether a quick-rejected cloud pair with this :func:`prior_contrast` goes on to the scan pass."""
+    prior, turned = contrast
+    return config.scans_screen_min_ratio is None or (prior > 0 and prior >= config.scans_screen_min_ratio * turned)
+
+
+def prior_contrast_of(query_scan: NDArray, candidate_scan: NDArray, query: LandmarkSet, candidate: LandmarkSet,
+                      T_prior: NDArray, matcher: GraffMatcher | ScanMatcher) -> tuple[float, float]:
+    """:func:`prior_contrast` of two stored scan clouds at the matcher's raw-scan evidence settings
+    ((0, 0) when either leaves too few points)."""
+    cfg = _verification_config(matcher)
+    s = scan_cloud(np.asarray(query_scan, float), query, cfg.scan_voxel, cfg.scan_max_points)
+    t = scan_cloud(np.asarray(candidate_scan, float), candidate, cfg.scan_voxel, cfg.scan_max_points)
+    if s is None or t is None:
+        return 0.0, 0.0
+    return prior_contrast(s, t, cfg, T_prior)
+
+
+def run_plan(order: list[dict], extra: list[dict], config: VerificationConfig, verify: Callable[[dict], float],
+             screen: Callable[[dict], bool] | None) -> None:
+    """Verify ``order`` then ``extra`` (:func:`verification_plan`), at most ``max_verified``, stopping at
+    the first accepted with ``stop_when_accepted``; with ``scans_screen_min_ratio`` an extra pair is
+    verified only when ``screen`` lets it through (no screen: none). ``verify(rec)`` returns the
+    confidence; one loop for :func:`verify_query` and the calibration replay."""
+    extras = {id(r) for r in extra}
+    n = 0
+    for rec in order + extra:
+        if n >= config.max_verified:
+            break
+        if id(rec) in extras and config.scans_screen_min_ratio is not None and (screen is None or not screen(rec)):
+            continue
+        n += 1
+        if verify(rec) >= config.min_confidence and config.stop_when_accepted:
+            break
+
+
 def verify_query(
     query: int,
     candidates: list[tuple[int, float]],
@@ -503,6 +607,7 @@ def verify_query(
     config: VerificationConfig,
     quick_config: QuickCheckConfig | None = None,
     scan_of: Callable[[int], NDArray | None] | None = None,
+    odometry_of: Callable[[int], NDArray | None] | None = None,
 ) -> list[dict]:
     """Pre-screen and verify the retrieved candidates of one query; one record a candidate.
 
@@ -515,7 +620,9 @@ def verify_query(
     scan cloud or None (landmark-poor scans keep one): a pair of two such scans is verified again
     on them when the landmark rule does not accept it (:func:`verify_candidate`), and with
     ``scans_skip_quick_check`` it is verified even when the quick check rejected it (after the
-    passing candidates).
+    passing candidates; :func:`verification_plan`). ``odometry_of(i)``: scan i's odometry pose (world
+    <- scan, drift allowed) or None: with ``scans_screen_min_ratio`` the quick-rejected cloud pairs go
+    through the first screen at the odometry's relative pose (:func:`screens_in`).
     """
     recs: list[dict] = []
     for rank, (j, dist) in enumerate(candidates):
@@ -537,15 +644,25 @@ def verify_query(
             rec["quick_pass"] = quick_gate(score, frac, rec["quick_translation_m"], config)
     qscan = None if scan_of is None else scan_of(query)
     scan = {r["match"]: (None if qscan is None else scan_of(r["match"])) for r in recs}  # type: ignore[misc]
-    if qscan is not None and config.scans_skip_quick_check:
+    qpose = None if odometry_of is None else odometry_of(query)
+    T_odo = {}
+    if qpose is not None:
         for r in recs:
-            if not r["quick_pass"] and scan[r["match"]] is not None:
-                r["quick_pass_scans"] = True
-    order = sorted((r for r in recs if r["quick_pass"]), key=lambda r: (-r["quick_score"], r["rank"]))
-    extra = sorted((r for r in recs if r.get("quick_pass_scans")), key=lambda r: (-r["quick_score"], r["rank"]))
-    order += extra if config.scans_skip_max is None else extra[: config.scans_skip_max]
-    order = order[: config.max_verified]
-    for rec in order:
+            cpose = odometry_of(r["match"])  # type: ignore[misc]
+            if cpose is not None:
+                T_odo[r["match"]] = np.linalg.solve(np.asarray(cpose, float), np.asarray(qpose, float))
+    order, extra = verification_plan(recs, config, lambda j: scan[j] is not None,
+                                     lambda j: None if j not in T_odo else float(np.linalg.norm(T_odo[j][:3, 3])))
+
+    def screen(rec: dict) -> bool:
+        t0 = time.perf_counter()
+        c = prior_contrast_of(qscan, scan[rec["match"]], landmarks_of(query), landmarks_of(rec["match"]),
+                              T_odo[rec["match"]], matcher)
+        dt = time.perf_counter() - t0
+        rec.update(screen_prior=c[0], screen_turned=c[1], screen_seconds=dt, seconds=rec["seconds"] + dt)
+        return screens_in(c, config)
+
+    def verify(rec: dict) -> float:
         v = verify_candidate(landmarks_of(query), landmarks_of(rec["match"]), matcher, config,
                              qscan, scan[rec["match"]])
         T = v["T_match_query"]
@@ -563,6 +680,7 @@ def verify_query(
         if v.get("on_scans"):
             rec["on_scans"] = True
             rec["support_T"] = None if v["support_T"] is None else np.asarray(v["support_T"]).ravel().tolist()
-        if config.stop_when_accepted and v["confidence"] >= config.min_confidence:
-            break
+        return v["confidence"]
+
+    run_plan(order, extra, config, verify, screen if T_odo else None)
     return recs

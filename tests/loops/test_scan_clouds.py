@@ -120,12 +120,21 @@ def test_scans_loop_confidence_rule():
 
 def test_defaults_are_the_calibrated_scan_rule():
     """Session 15's choice on the calibration drives (bench/loops_calibration_scans.py): clouds for
-    scans with < 8 landmarks, scan verdicts from confidence 0.99 with 3 agreeing landmarks; cloud
-    pairs the quick check rejects stay unverified (the time target). (ScanMatcher's own default,
-    raw scans after the support points on whole views, is the verification bench's.)"""
+    scans with < 8 landmarks, scan verdicts from confidence 0.99 with 3 agreeing landmarks; session
+    16's (bench/loops_calibration_points15b.py --grid 16): cloud pairs the quick check rejects are
+    verified only behind the first screen (contrast 3, at most 1 a query, point-won verdicts with 0
+    agreeing landmarks), passing candidates beyond the radius last, point hypotheses in the loop
+    matcher only. (ScanMatcher's own default, raw scans after the support points on whole views, is
+    the verification bench's.)"""
+    from graffmatch.loops import LoopDetectorConfig
+    from graffmatch.matcher import GraffMatchConfig
     from graffmatch.pipeline import ScanMatcherConfig
 
     v = VerificationConfig()
     assert (v.scan_cloud_below, v.scans_min_confidence, v.scans_min_agreeing, v.scans_skip_quick_check) == (
-        8, 0.99, 3, False)
+        8, 0.99, 3, True)
+    assert (v.scans_screen_min_ratio, v.scans_skip_max, v.scans_points_min_agreeing, v.quick_order_radius) == (
+        3.0, 1, 0, True)
+    assert LoopDetectorConfig().matcher.verification.point_hypotheses
+    assert not GraffMatchConfig().verification.point_hypotheses
     assert ScanMatcherConfig().evidence == "support_then_scans"
