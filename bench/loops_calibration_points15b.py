@@ -26,6 +26,19 @@ that is not an e2e TP at the default threshold on any calibration drive AND no w
 accepted by the scan rule among every verified cloud pair (stress set), the largest summed e2e
 recall at 100 % precision; ties to the stricter (points off, larger a, skip off, smaller m). The
 query time (k = 5 <= 20 ms mean) is measured after, with bench_loops_speed.py.
+
+Session 16 (``--grid 16``; the one replay script of both sessions, the policy replayed through
+``loops.verify.verification_plan`` / ``run_plan``, the code ``verify_query`` runs; ``--grid 15b`` gives
+``loops_calibration_points15b.json`` row for row):
+
+    PYTHONPATH=$PWD nice -n 19 python bench/loops_calibration_points15b.py --data /tmp/loops16-cal-data \
+        --out /tmp/loops16-cal-out --grid 16 --contrast-cache /tmp/loops16-cal-contrast \
+        --json bench/results/loops_calibration_session16.json
+
+the first screen of quick-rejected cloud pairs (``prior_contrast`` at the drift odometry's relative
+pose, computed once per recorded pair and cached) x ratio x cap x a, and the radius order, on the
+eight drives plus downtown 7 and 8 (``EXTRA_DRIVES_16``; their runs as above, without ``--replay-only``);
+the rule in :func:`grid16`.
 """
 
 from __future__ import annotations
