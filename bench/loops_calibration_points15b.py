@@ -39,6 +39,12 @@ the first screen of quick-rejected cloud pairs (``prior_contrast`` at the drift 
 pose, computed once per recorded pair and cached) x ratio x cap x a, and the radius order, on the
 eight drives plus downtown 7 and 8 (``EXTRA_DRIVES_16``; their runs as above, without ``--replay-only``);
 the rule in :func:`grid16`.
+
+Session 16b (``--grid 16b``): the same grid, ratios up to 4, on those ten drives plus downtown 9-12
+(``EXTRA_DRIVES_16B``, recorded first with ``--drives sim-downtown:9 ... --grid 16b``), ties to session 16's
+shipped row first (docs/loops.md session 16b); ``--rescan nostart|start`` runs the scan pass of every
+recorded quick-rejected cloud pair again on this code, without or with the drift odometry's relative
+pose as a start of its point hypotheses (``scan_pass(..., starts)``), and replays with those.
 """
 
 from __future__ import annotations
@@ -60,6 +66,9 @@ K = 8
 #: Session 16's grid also runs on two more calibration drives (never reported, never used before): the
 #: eight barely exercise the first screen (downtown 3/4/6 hold its only quick-rejected cloud pairs).
 EXTRA_DRIVES_16 = [("sim-downtown", 7), ("sim-downtown", 8)]
+#: Session 16b: four more downtown seeds never used anywhere (reported 1 and 5; calibration 2-4, 6-8; seed 0
+#: in tests and examples), because the ten above still tie on the screen's ratio and cap.
+EXTRA_DRIVES_16B = [("sim-downtown", 9), ("sim-downtown", 10), ("sim-downtown", 11), ("sim-downtown", 12)]
 A_GRID = [0, 1, 2, 3]
 SKIP_GRID = [(False, None), (True, 1), (True, 2), (True, 5)]
 
@@ -154,9 +163,52 @@ def contrasts(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarr
     return {(a, b): (x, y) for a, b, x, y in rows}
 
 
+def rescans(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarray, cfg, start: bool) -> dict:
+    """The scan pass of every recorded quick-rejected cloud pair run again on this code (session 16b),
+    with the drift odometry's relative pose as a start of its point hypotheses or without; kept in
+    ``cache``. Only these pairs: the odometry start is for the screened ones (``scans_screen_start``)."""
+    import json
+
+    from graffmatch.loops.database import load_landmarks, load_scan_cloud
+    from graffmatch.loops.detector import LoopDetector
+    from graffmatch.loops.verify import quick_gate, scan_pass
+
+    if cache.is_file():
+        return {(int(r["query"]), int(r["match"])): r for r in json.loads(cache.read_text())}
+    v, matcher = cfg.verification, LoopDetector(cfg).matcher
+    lm = {}
+
+    def load(i: int):
+        if i not in lm:
+            f = out / "landmarks" / f"{i:06d}.npz"
+            lm[i] = (load_landmarks(f), load_scan_cloud(f))
+        return lm[i]
+
+    rows = []
+    for q, r in recs.items():
+        if not has[q]:
+            continue
+        for c in r["candidates"]:
+            j = int(c["match"])
+            if not (c.get("verified") and has[j] and "scan_seconds" in c) or quick_gate(
+                    int(c["quick_score"]), float(c["quick_fraction"]), float(c["quick_translation_m"]), v):
+                continue
+            (lq, sq), (lj, sj) = load(q), load(j)
+            sp = scan_pass(lq, lj, sq, sj, matcher, v, (np.linalg.solve(odo[j], odo[q]),) if start else ())
+            sp["scan_T"] = None if sp["scan_T"] is None else np.asarray(sp["scan_T"]).ravel().tolist()
+            rows.append({"query": int(q), "match": j, **sp})
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    cache.write_text(json.dumps(rows))
+    return {(r["query"], r["match"]): r for r in rows}
+
+
 A16_GRID = [0, 2, 3]
 RATIO16_GRID = [1.5, 2.0, 2.5, 3.0]
 M16_GRID = [1, 2, 3]
+#: Session 16b adds 3.5 and 4 (is the shipped 3.0 on a plateau?) and breaks ties to the shipped row first.
+RATIO16B_GRID = [1.5, 2.0, 2.5, 3.0, 3.5, 4.0]
+SHIPPED_16 = {"quick_order_radius": True, "scans_points_min_agreeing": 0, "scans_skip_max": 1,
+              "scans_screen_min_ratio": 3.0}
 
 
 def grid16(args, cfg, drives: list, t0: float) -> None:
@@ -169,7 +221,10 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
     cloud pairs the setting can reach (quick-passing ones, and the quick-rejected ones its screen lets
     through); the most summed e2e R@100%P; ties to the stricter/faster (shipped first, order off,
     higher s, smaller m, larger a). A row that ties with the shipped one may still be chosen when its
-    stress set has >= 10 right and 0 wrong accepts and the time target holds (measured after)."""
+    stress set has >= 10 right and 0 wrong accepts and the time target holds (measured after).
+    ``--grid 16b`` (written before its rows, docs/loops.md session 16b): the same
+    filter over 14 drives, ratios up to 4; among the rows tied at the most recall session 16's shipped row
+    (order on, ratio 3, cap 1, a 0) first, then the stricter as above."""
     from graffmatch.loops.consistency import apply_sequence_consistency
     from graffmatch.loops.verify import quick_gate, screens_in
 
@@ -182,8 +237,8 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
         cons[ds.name] = contrasts(args.out / ds.name / "ours", cache, recs, has, np.asarray(odo), cfg)
         print(f"{ds.name}: {len(cons[ds.name])} quick-rejected cloud pairs screened", flush=True)
     settings = [(False, False, 3, False, None, None), (True, False, 3, False, None, None)] + [
-        (order, True, a, True, m, s) for order in (False, True) for s in RATIO16_GRID for m in M16_GRID
-        for a in A16_GRID]
+        (order, True, a, True, m, s) for order in (False, True)
+        for s in (RATIO16B_GRID if args.grid == "16b" else RATIO16_GRID) for m in M16_GRID for a in A16_GRID]
     grid = []
     for order, points, a_min, skip, m, ratio in settings:
         v = base_v.model_copy(update={"quick_order_radius": order, "scans_points_min_agreeing": a_min,
@@ -238,7 +293,8 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
     ok = [g for g in grid if g["accepted_e2e_false"] == 0 and g["stress_scans_false"] == 0]
     strict = lambda g: (g["scans_screen_min_ratio"] is None, not g["quick_order_radius"],  # noqa: E731
                         g["scans_screen_min_ratio"] or 0, -(g["scans_skip_max"] or 0), g["scans_points_min_agreeing"])
-    best = max(ok, key=lambda g: (round(g["sum_e2e_r100p"], 9), *strict(g)))
+    shipped = lambda g: args.grid == "16b" and all(g[k] == v for k, v in SHIPPED_16.items())  # noqa: E731
+    best = max(ok, key=lambda g: (round(g["sum_e2e_r100p"], 9), shipped(g), *strict(g)))
     keys = ("quick_order_radius", "point_hypotheses", "scans_points_min_agreeing", "scans_skip_quick_check",
             "scans_skip_max", "scans_screen_min_ratio", "sum_e2e_r100p", "stress_scans_true")
     chosen = {k: best[k] for k in keys}
@@ -251,7 +307,7 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
     if args.json:
         write_json(args.json, {
             "machine": machine(), "wall_s": time.perf_counter() - t0, "drives": [d[0].name for d in drives],
-            "grid_kind": "16", "run_config_verification": cfg.verification.model_dump(mode="json"),
+            "grid_kind": args.grid, "run_config_verification": cfg.verification.model_dump(mode="json"),
             "run_config_matcher_verification": cfg.matcher.verification.model_dump(mode="json"), "chosen": chosen,
             "exception_if_tied": exception, "grid": grid})
 
@@ -265,10 +321,15 @@ def main() -> None:
     ap.add_argument("--drives", nargs="+", default=None, metavar="SUITE:SEED", help="a subset of the split")
     ap.add_argument("--replay-only", action="store_true")
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--grid", choices=["15b", "16"], default="15b",
-                    help="15b: session 15b's grid (points x a x skip); 16: the first screen and the radius order")
+    ap.add_argument("--grid", choices=["15b", "16", "16b"], default="15b",
+                    help="15b: session 15b's grid (points x a x skip); 16: the first screen and the radius order; "
+                    "16b: 16 on four more downtown drives, ratios up to 4, ties to the shipped row first")
     ap.add_argument("--contrast-cache", type=Path, default=None,
                     help="--grid 16: where the screens' contrasts are kept (one JSON a drive; default: --out)")
+    ap.add_argument("--rescan", choices=["nostart", "start"], default=None,
+                    help="--grid 16b: run the scan pass of every recorded quick-rejected cloud pair again on this code, "
+                    "with (start) or without (nostart) the odometry's relative pose as a start (cached next to the "
+                    "contrasts), and replay with those")
     args = ap.parse_args()
 
     from graffmatch.datasets.registry import open_dataset
@@ -282,9 +343,12 @@ def main() -> None:
     split = CALIBRATION_DRIVES
     if args.drives:
         split = [(d.rsplit(":", 1)[0], int(d.rsplit(":", 1)[1])) for d in args.drives]
-        assert all(d in CALIBRATION_DRIVES + EXTRA_DRIVES_16 for d in split), "calibration drives only"
+        assert all(d in CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B for d in split), \
+            "calibration drives only"
     elif args.grid == "16":
         split = CALIBRATION_DRIVES + EXTRA_DRIVES_16
+    elif args.grid == "16b":
+        split = CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B
     drives = []
     for p in simulate(args.data, args.scans, "realistic", split):
         ds, odo = prepare_drive(open_dataset("folder", p), "drift", True)
@@ -304,7 +368,18 @@ def main() -> None:
               f"{1e3 * np.mean([c['scan_seconds'] for c in cs]) if cs else 0:.1f} ms mean, {len(pts)} won by "
               f"points ({sum(bool(c['scan_valid']) for c in pts)} valid)", flush=True)
 
-    if args.grid == "16":
+    if args.rescan is not None:
+        for ds, odo, _poses, recs, has, _ in drives:
+            cache = (args.contrast_cache or args.out) / f"{ds.name}.rescan_{args.rescan}.json"
+            t1 = time.perf_counter()
+            rs = rescans(args.out / ds.name / "ours", cache, recs, has, np.asarray(odo), cfg, args.rescan == "start")
+            for q, r in recs.items():
+                for c in r["candidates"]:
+                    c.update({k: v for k, v in rs.get((int(q), int(c["match"])), {}).items()
+                              if k not in ("query", "match")})
+            print(f"{ds.name}: {len(rs)} quick-rejected scan passes run again ({args.rescan}), "
+                  f"{time.perf_counter() - t1:.0f} s, {sum(bool(x['scan_valid']) for x in rs.values())} valid", flush=True)
+    if args.grid in ("16", "16b"):
         grid16(args, cfg, drives, t0)
         return
     base_v = cfg.verification.model_copy(update={

@@ -78,7 +78,7 @@ def test_screened_pair_recovered_and_other_place_refused(two_landmark_pair):
     assert kitti["verified"] and kitti["confidence"] >= 0.99, kitti
     rot, tr = transform_errors(np.asarray(kitti["T"]).reshape(4, 4), T)
     assert rot < 0.5 and tr < 0.2, (rot, tr)
-    assert not court["verified"] and "screen_prior" not in court  # the cap: the odometry-nearest one only
+    assert not court["verified"] and "screen_prior" not in court  # the odometry-nearest is accepted first
     alone = _query(two_landmark_pair, [(1, 0.1)], poses)[0]
     assert "screen_prior" in alone and not alone["verified"], alone
     assert not any(r["verified"] for r in _query(two_landmark_pair, [(1, 0.1), (0, 0.2)], None))
@@ -97,7 +97,10 @@ def test_radius_order_and_screen_budget():
     recs = [_rec(15, 5, 10, 6.0), _rec(10, 0, 9, 4.8), _rec(11, 1, 7, 4.6), _rec(12, 2, 3, 9.0),
             _rec(13, 3, 0, 0.0, False), _rec(14, 4, 0, 0.0, False)]
     order, extra = verification_plan(recs, v, lambda j: True, lambda j: {13: 8.0, 14: 2.0}[j])
-    assert [r["match"] for r in order] == [11, 12, 10, 15] and [r["match"] for r in extra] == [14]
+    assert [r["match"] for r in order] == [11, 12, 10, 15] and [r["match"] for r in extra] == [14, 13]
+    _, one = verification_plan(recs, v.model_copy(update={"scans_skip_max": 1}), lambda j: True,
+                               lambda j: {13: 8.0, 14: 2.0}[j])
+    assert [r["match"] for r in one] == [14]
     old, _ = verification_plan(recs, v.model_copy(update={"quick_order_radius": False}), lambda j: True,
                                lambda j: 0.0)
     assert [r["match"] for r in old] == [15, 10, 11, 12]
@@ -110,3 +113,31 @@ def test_radius_order_and_screen_budget():
     done.clear()
     run_plan(order[:1], extra, v2, lambda r: done.append(r["match"]) or 0.0, lambda r: r["match"] == 13)
     assert done == [11, 13]  # 14 refused by the screen, 13 verified within the budget
+
+
+def test_scan_pass_start_from_the_odometry(two_landmark_pair):
+    """``scan_pass(..., starts)`` (session 16b's measurement hook): KITTI 5 turned by 45 deg about its
+    sensor against KITTI 0 with a 90-degree point sweep, so no swept yaw lies within 45 deg of the
+    truth: without a start the pass is invalid (measured 44 deg off); with the odometry's pose 4 deg /
+    2 m off as a start it is valid, confidence >= 0.99, within 0.5 deg / 20 cm (measured 0.13 deg / 8 cm)."""
+    from graffmatch.geometry.landmarks import LandmarkSet
+    from graffmatch.loops import LoopDetector
+    from graffmatch.loops.verify import scan_pass
+
+    (a, b, _), (sa, sb, _), T = two_landmark_pair
+    Y = _yaw(45.0)
+    r = b.transform(Y)  # the sensor turned with it: same sensor pose and range image
+    r = LandmarkSet(r.types, r.bases, r.anchors, r.attributes, r.points, r.point_offsets, validate=False,
+                    sensor_pose=b.sensor_pose, scan_ranges=b.scan_ranges)
+    rs = (np.asarray(sb, float) @ Y[:3, :3].T).astype(np.float32)
+    truth = np.asarray(T) @ np.linalg.inv(Y)
+    cfg = _detector(True).config.model_copy(deep=True)
+    cfg.matcher.verification.point_yaw_step_deg = 90.0
+    m = LoopDetector(cfg).matcher
+    v = VerificationConfig()
+    off = scan_pass(r, a, rs, sa, m, v)
+    assert not off["scan_valid"], off
+    on = scan_pass(r, a, rs, sa, m, v, (_drifted(truth),))
+    assert on["scan_valid"] and on["scan_confidence"] >= 0.99, on
+    rot, tr = transform_errors(np.asarray(on["scan_T"]).reshape(4, 4), truth)
+    assert rot < 0.5 and tr < 0.2, (rot, tr)

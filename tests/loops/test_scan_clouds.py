@@ -122,7 +122,7 @@ def test_defaults_are_the_calibrated_scan_rule():
     """Session 15's choice on the calibration drives (bench/loops_calibration_scans.py): clouds for
     scans with < 8 landmarks, scan verdicts from confidence 0.99 with 3 agreeing landmarks; session
     16's (bench/loops_calibration_points15b.py --grid 16): cloud pairs the quick check rejects are
-    verified only behind the first screen (contrast 3, at most 1 a query, point-won verdicts with 0
+    verified only behind the first screen (contrast 2.5, at most 2 a query since session 16b; point-won verdicts with 0
     agreeing landmarks), passing candidates beyond the radius last, point hypotheses in the loop
     matcher only. (ScanMatcher's own default, raw scans after the support points on whole views, is
     the verification bench's.)"""
@@ -134,7 +134,7 @@ def test_defaults_are_the_calibrated_scan_rule():
     assert (v.scan_cloud_below, v.scans_min_confidence, v.scans_min_agreeing, v.scans_skip_quick_check) == (
         8, 0.99, 3, True)
     assert (v.scans_screen_min_ratio, v.scans_skip_max, v.scans_points_min_agreeing, v.quick_order_radius) == (
-        3.0, 1, 0, True)
+        2.5, 2, 0, True)
     assert LoopDetectorConfig().matcher.verification.point_hypotheses
     assert not GraffMatchConfig().verification.point_hypotheses
     assert ScanMatcherConfig().evidence == "support_then_scans"
