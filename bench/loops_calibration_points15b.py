@@ -236,14 +236,16 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
         cache = (args.contrast_cache or args.out) / f"{ds.name}.contrast16.json"
         cons[ds.name] = contrasts(args.out / ds.name / "ours", cache, recs, has, np.asarray(odo), cfg)
         print(f"{ds.name}: {len(cons[ds.name])} quick-rejected cloud pairs screened", flush=True)
-    settings = [(False, False, 3, False, None, None), (True, False, 3, False, None, None)] + [
-        (order, True, a, True, m, s) for order in (False, True)
+    settings = [(False, False, 3, False, None, None, False), (True, False, 3, False, None, None, False)] + [
+        (order, True, a, True, m, s, False) for order in (False, True)
         for s in (RATIO16B_GRID if args.grid == "16b" else RATIO16_GRID) for m in M16_GRID for a in A16_GRID]
+    if args.grid == "16c":  # session 16b's step 3: equal quick scores odometry-nearest first, off / on
+        settings = [(True, True, 0, True, m, s, odo) for m, s in ((2, 2.5), (1, 3.0)) for odo in (False, True)]
     grid = []
-    for order, points, a_min, skip, m, ratio in settings:
+    for order, points, a_min, skip, m, ratio, odo_order in settings:
         v = base_v.model_copy(update={"quick_order_radius": order, "scans_points_min_agreeing": a_min,
                                       "scans_skip_quick_check": skip, "scans_skip_max": m,
-                                      "scans_screen_min_ratio": ratio})
+                                      "scans_screen_min_ratio": ratio, "quick_order_odometry": odo_order})
         c2 = cfg.model_copy(update={"verification": v})
         rows, s_true, s_false, on_scans, false_rows, n_screened, n_extra = {}, 0, 0, 0, [], 0, 0
         for ds, odo, poses, recs, has, _ in drives:
@@ -277,7 +279,7 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
                         false_rows.append({"drive": ds.name, "query": int(q), "match": j,
                                            "scan_origin": c.get("scan_origin"), "scan_confidence": c["scan_confidence"],
                                            "scan_n_agreeing": c["scan_n_agreeing"], "gt_m_deg_m": e})
-        g = {"quick_order_radius": order, "point_hypotheses": points, "scans_points_min_agreeing": a_min,
+        g = {"quick_order_radius": order, "quick_order_odometry": odo_order, "point_hypotheses": points, "scans_points_min_agreeing": a_min,
              "scans_skip_quick_check": skip, "scans_skip_max": m, "scans_screen_min_ratio": ratio, "drives": rows,
              "sum_e2e_r100p": round(sum(r["e2e_r100p"] for r in rows.values()), 6),
              "accepted_e2e_false": sum(r["accepted_e2e_false"] for r in rows.values()),
@@ -285,7 +287,7 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
              "stress_quick_rejected_reached": n_screened, "stress_scans_true": s_true,
              "stress_scans_false": s_false, "stress_false_rows": false_rows[:20]}
         grid.append(g)
-        print(f"order {int(order)} points {int(points)} a {a_min} skip {int(skip)} m {m} s {ratio}: sum "
+        print(f"order {int(order)} odo {int(odo_order)} points {int(points)} a {a_min} skip {int(skip)} m {m} s {ratio}: sum "
               f"{g['sum_e2e_r100p']:.3f} false {g['accepted_e2e_false']} on-scans {on_scans} extra-verified {n_extra} "
               f"| stress reached {n_screened} true {s_true} false {s_false} |",
               " ".join(f"{n.replace('sim-', '').replace('+deskew', '')}:{r['e2e_r100p']:.3f}({r['accepted_e2e_false']})"
@@ -294,8 +296,8 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
     strict = lambda g: (g["scans_screen_min_ratio"] is None, not g["quick_order_radius"],  # noqa: E731
                         g["scans_screen_min_ratio"] or 0, -(g["scans_skip_max"] or 0), g["scans_points_min_agreeing"])
     shipped = lambda g: args.grid == "16b" and all(g[k] == v for k, v in SHIPPED_16.items())  # noqa: E731
-    best = max(ok, key=lambda g: (round(g["sum_e2e_r100p"], 9), shipped(g), *strict(g)))
-    keys = ("quick_order_radius", "point_hypotheses", "scans_points_min_agreeing", "scans_skip_quick_check",
+    best = max(ok, key=lambda g: (round(g["sum_e2e_r100p"], 9), shipped(g), not g["quick_order_odometry"], *strict(g)))
+    keys = ("quick_order_radius", "quick_order_odometry", "point_hypotheses", "scans_points_min_agreeing", "scans_skip_quick_check",
             "scans_skip_max", "scans_screen_min_ratio", "sum_e2e_r100p", "stress_scans_true")
     chosen = {k: best[k] for k in keys}
     print("chosen:", chosen)
@@ -321,9 +323,10 @@ def main() -> None:
     ap.add_argument("--drives", nargs="+", default=None, metavar="SUITE:SEED", help="a subset of the split")
     ap.add_argument("--replay-only", action="store_true")
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--grid", choices=["15b", "16", "16b"], default="15b",
+    ap.add_argument("--grid", choices=["15b", "16", "16b", "16c"], default="15b",
                     help="15b: session 15b's grid (points x a x skip); 16: the first screen and the radius order; "
-                    "16b: 16 on four more downtown drives, ratios up to 4, ties to the shipped row first")
+                    "16b: 16 on four more downtown drives, ratios up to 4, ties to the shipped row first; 16c: 16b's "
+                    "drives, equal quick scores odometry-nearest first, off / on")
     ap.add_argument("--contrast-cache", type=Path, default=None,
                     help="--grid 16: where the screens' contrasts are kept (one JSON a drive; default: --out)")
     ap.add_argument("--rescan", choices=["nostart", "start"], default=None,
@@ -347,7 +350,7 @@ def main() -> None:
             "calibration drives only"
     elif args.grid == "16":
         split = CALIBRATION_DRIVES + EXTRA_DRIVES_16
-    elif args.grid == "16b":
+    elif args.grid in ("16b", "16c"):
         split = CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B
     drives = []
     for p in simulate(args.data, args.scans, "realistic", split):
@@ -379,7 +382,7 @@ def main() -> None:
                               if k not in ("query", "match")})
             print(f"{ds.name}: {len(rs)} quick-rejected scan passes run again ({args.rescan}), "
                   f"{time.perf_counter() - t1:.0f} s, {sum(bool(x['scan_valid']) for x in rs.values())} valid", flush=True)
-    if args.grid in ("16", "16b"):
+    if args.grid in ("16", "16b", "16c"):
         grid16(args, cfg, drives, t0)
         return
     base_v = cfg.verification.model_copy(update={

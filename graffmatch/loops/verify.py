@@ -91,6 +91,11 @@ SCANS_POINTS_MIN_AGREEING = 0
 SCANS_SKIP_MAX: int | None = 2
 SCANS_SCREEN_MIN_RATIO: float | None = 2.5
 QUICK_ORDER_RADIUS = True
+#: Session 16b (``--grid 16c``, bench/results/loops_calibration_session16b_odometry_order.json): passing
+#: candidates of equal quick score taken odometry-nearest first, not by retrieval rank (a landmark-poor query
+#: gives many candidates 2-3 inliers and its partner missed the budget): 13.504 -> 13.550 summed on the 14
+#: drives (downtown 4 and 11), 0 wrong loops, the stress set unchanged. Without odometry: retrieval rank.
+QUICK_ORDER_ODOMETRY = True
 
 
 class VerificationConfig(BaseModel):
@@ -217,6 +222,12 @@ class VerificationConfig(BaseModel):
         "quick_translation_min_inliers inliers) lies beyond max_translation_m minus place_margin_m after the others: "
         "they cannot become loops when the estimate is right, and they used the verification budget of queries "
         "whose partners lie 4.7-5 m away (sim-downtown-s1, docs/loops.md session 16); the least beyond first",
+    )
+    quick_order_odometry: bool = Field(
+        QUICK_ORDER_ODOMETRY,
+        description="with odometry: passing candidates of equal quick score are verified odometry-nearest first instead "
+        "of by retrieval rank (landmark-poor queries give many candidates 2-3 inliers, and the partner may not be "
+        "reached within max_verified)",
     )
     max_landmarks_per_type: int | None = Field(
         40, ge=2, description="match at most this many landmarks of a type (largest first)"
@@ -536,12 +547,17 @@ def verification_plan(
     """(candidates passing the quick check in the order they are verified, quick-rejected cloud pairs
     that may follow): one rule for :func:`verify_query` and the calibration replay.
 
-    Passing candidates: best quick score first, then retrieval rank; with ``quick_order_radius``
+    Passing candidates: best quick score first, then retrieval rank (with ``quick_order_odometry`` the
+    odometry-nearest, rank without odometry); with ``quick_order_radius``
     those whose quick estimate (``quick_translation_min_inliers`` or more inliers) lies beyond the
     place radius less the margin go last, the least beyond first. Quick-rejected pairs of two scans with clouds
     (``scans_skip_quick_check``): with ``scans_screen_min_ratio`` only those with odometry, nearest by
     the odometry first (a landmark-poor query has no quick score to rank by); else best quick score
     first; at most ``scans_skip_max``. ``has_scan(j)``: both the query and j keep scan clouds."""
+    def tie(r: dict) -> float:
+        d = odometry_distance(r["match"]) if config.quick_order_odometry else None
+        return r["rank"] if d is None else d
+
     def key(r: dict) -> tuple:
         t = r.get("quick_translation_m", 0.0)
         beyond = bool(
@@ -550,7 +566,7 @@ def verification_plan(
             and t > config.max_translation_m - config.place_margin_m)
         # beyond ones nearest first: the quick estimate is off by decimetres to metres (balm_courtyard:
         # 4.76 m quick, 4.66 m verified), so the least beyond is the likeliest to lie inside after all
-        return (1, t, -r["quick_score"], r["rank"]) if beyond else (0, 0.0, -r["quick_score"], r["rank"])
+        return (1, t, -r["quick_score"], r["rank"]) if beyond else (0, 0.0, -r["quick_score"], tie(r), r["rank"])
 
     order = sorted((r for r in recs if r["quick_pass"]), key=key)
     extra: list[dict] = []

@@ -91,21 +91,29 @@ def _rec(match: int, rank: int, score: int, t: float, passing: bool = True) -> d
 def test_radius_order_and_screen_budget():
     """Passing candidates whose quick estimate (>= 4 inliers) lies beyond 5 - 0.25 m go last, the least
     beyond first (6.0 m with 10 inliers and 4.8 m with 9 after 4.6 m with 7); an estimate from 3 inliers
-    is not trusted. A quick-rejected pair the screen refuses does not use the budget; the cap takes
-    the odometry-nearest."""
+    is not trusted; equal quick scores go odometry-nearest first (retrieval rank without odometry). A
+    quick-rejected pair the screen refuses does not use the budget; the cap takes the odometry-nearest."""
     v = VerificationConfig(max_translation_m=5.0)
     recs = [_rec(15, 5, 10, 6.0), _rec(10, 0, 9, 4.8), _rec(11, 1, 7, 4.6), _rec(12, 2, 3, 9.0),
             _rec(13, 3, 0, 0.0, False), _rec(14, 4, 0, 0.0, False)]
-    order, extra = verification_plan(recs, v, lambda j: True, lambda j: {13: 8.0, 14: 2.0}[j])
+    order, extra = verification_plan(recs, v, lambda j: True, {13: 8.0, 14: 2.0}.get)
     assert [r["match"] for r in order] == [11, 12, 10, 15] and [r["match"] for r in extra] == [14, 13]
     _, one = verification_plan(recs, v.model_copy(update={"scans_skip_max": 1}), lambda j: True,
-                               lambda j: {13: 8.0, 14: 2.0}[j])
+                               {13: 8.0, 14: 2.0}.get)
     assert [r["match"] for r in one] == [14]
     old, _ = verification_plan(recs, v.model_copy(update={"quick_order_radius": False}), lambda j: True,
                                lambda j: 0.0)
     assert [r["match"] for r in old] == [15, 10, 11, 12]
+    ties = [_rec(20, 0, 2, 30.0), _rec(21, 1, 2, 9.0), _rec(22, 2, 2, 0.4), _rec(23, 3, 3, 7.0)]
+    far = {20: 40.0, 21: 25.0, 22: 1.0, 23: 30.0}
+    order, _ = verification_plan(ties, v, lambda j: False, far.get)  # equal quick scores: odometry-nearest first
+    assert [r["match"] for r in order] == [23, 22, 21, 20]
+    order, _ = verification_plan(ties, v, lambda j: False, lambda j: None)  # no odometry: retrieval rank
+    assert [r["match"] for r in order] == [23, 20, 21, 22]
+    order, _ = verification_plan(ties, v.model_copy(update={"quick_order_odometry": False}), lambda j: False, far.get)
+    assert [r["match"] for r in order] == [23, 20, 21, 22]
     v2 = v.model_copy(update={"scans_skip_max": 2, "max_verified": 2})
-    order, extra = verification_plan(recs, v2, lambda j: True, lambda j: {13: 8.0, 14: 2.0}[j])
+    order, extra = verification_plan(recs, v2, lambda j: True, {13: 8.0, 14: 2.0}.get)
     assert [r["match"] for r in extra] == [14, 13]
     done: list[int] = []
     run_plan(order, extra, v2, lambda r: done.append(r["match"]) or 0.0, lambda r: r["match"] == 13)

@@ -135,6 +135,7 @@ def test_defaults_are_the_calibrated_scan_rule():
         8, 0.99, 3, True)
     assert (v.scans_screen_min_ratio, v.scans_skip_max, v.scans_points_min_agreeing, v.quick_order_radius) == (
         2.5, 2, 0, True)
+    assert v.quick_order_odometry  # session 16b
     assert LoopDetectorConfig().matcher.verification.point_hypotheses
     assert not GraffMatchConfig().verification.point_hypotheses
     assert ScanMatcherConfig().evidence == "support_then_scans"
