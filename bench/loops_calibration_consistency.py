@@ -45,7 +45,8 @@ TOP_K = 20
 
 def policy_records(recs: dict[int, dict], vcfg, top_k: int) -> dict[int, dict]:
     """The candidates the default policy verifies, each with its confidence under ``vcfg``."""
-    from graffmatch.loops.verify import loop_confidence, quick_gate
+    from graffmatch.loops.plan import quick_gate
+    from graffmatch.loops.verify import loop_confidence
 
     out = {}
     for q, r in recs.items():

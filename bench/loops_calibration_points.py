@@ -58,8 +58,9 @@ def main() -> None:
     from graffmatch.datasets.registry import open_dataset
     from graffmatch.loops.database import load_landmarks
     from graffmatch.loops.detector import LoopDetector
+    from graffmatch.loops.plan import quick_gate
     from graffmatch.loops.sequence import prepare_drive, read_queries, run_loops
-    from graffmatch.loops.verify import quick_gate, verify_candidate
+    from graffmatch.loops.verify import verify_candidate
 
     t0 = time.perf_counter()
     cfg = calibration_config()

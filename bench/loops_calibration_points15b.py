@@ -100,7 +100,7 @@ def policy_records(recs: dict[int, dict], has_scan: np.ndarray, vcfg, points: bo
     """The candidates the default policy verifies under ``vcfg``: ``verify_query``'s own plan and loop
     (``verification_plan``, ``run_plan``) over the recorded verdicts; ``contrast[(q, j)]``: the first
     screen's (prior, turned) of a quick-rejected cloud pair at the odometry ``odo`` (session 16)."""
-    from graffmatch.loops.verify import quick_gate, run_plan, screens_in, verification_plan
+    from graffmatch.loops.plan import quick_gate, run_plan, screens_in, verification_plan
 
     out = {}
     for q, r in recs.items():
@@ -134,7 +134,8 @@ def contrasts(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarr
 
     from graffmatch.loops.database import load_landmarks, load_scan_cloud
     from graffmatch.loops.detector import LoopDetector
-    from graffmatch.loops.verify import prior_contrast_of, quick_gate
+    from graffmatch.loops.plan import quick_gate
+    from graffmatch.loops.verify import prior_contrast_of
 
     if cache.is_file():
         return {(int(a), int(b)): tuple(v) for a, b, *v in json.loads(cache.read_text())}
@@ -171,7 +172,8 @@ def rescans(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarray
 
     from graffmatch.loops.database import load_landmarks, load_scan_cloud
     from graffmatch.loops.detector import LoopDetector
-    from graffmatch.loops.verify import quick_gate, scan_pass
+    from graffmatch.loops.plan import quick_gate
+    from graffmatch.loops.verify import scan_pass
 
     if cache.is_file():
         return {(int(r["query"]), int(r["match"])): r for r in json.loads(cache.read_text())}
@@ -226,7 +228,7 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
     filter over 14 drives, ratios up to 4; among the rows tied at the most recall session 16's shipped row
     (order on, ratio 3, cap 1, a 0) first, then the stricter as above."""
     from graffmatch.loops.consistency import apply_sequence_consistency
-    from graffmatch.loops.verify import quick_gate, screens_in
+    from graffmatch.loops.plan import quick_gate, screens_in
 
     base_v = cfg.verification.model_copy(update={
         "max_verified": DEFAULT_MAX_VERIFIED, "stop_when_accepted": True, "scan_cloud_below": K,

@@ -94,7 +94,7 @@ def candidate_confidence(c: dict, both_scans: bool, vcfg) -> tuple[float, list |
 
 def policy_records(recs: dict[int, dict], has_scan: np.ndarray, vcfg) -> dict[int, dict]:
     """The candidates the default policy verifies under ``vcfg``, with their confidence and T."""
-    from graffmatch.loops.verify import quick_gate
+    from graffmatch.loops.plan import quick_gate
 
     out = {}
     for q, r in recs.items():

@@ -27,6 +27,7 @@ from graffmatch.loops.database import (
     with_evidence_points,
 )
 from graffmatch.loops.descriptor import DescriptorConfig, landmark_descriptor
+from graffmatch.loops.plan import verify_query
 from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_check_many, quick_index
 from graffmatch.loops.retrieval import RetrievalConfig, eligible_count, make_retriever
 from graffmatch.loops.verify import (
@@ -35,7 +36,6 @@ from graffmatch.loops.verify import (
     VerificationConfig,
     scan_pass,
     verify_candidate,
-    verify_query,
 )
 from graffmatch.matcher import GraffMatchConfig
 from graffmatch.pipeline import ScanMatcher, ScanMatcherConfig

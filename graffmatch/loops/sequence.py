@@ -49,9 +49,10 @@ from graffmatch.loops.database import (
 )
 from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig, warm_up_once
 from graffmatch.loops.io import loop_edges, write_g2o, write_loops_csv
+from graffmatch.loops.plan import verify_query
 from graffmatch.loops.quickcheck import QuickIndex, quick_index
 from graffmatch.loops.retrieval import eligible_count
-from graffmatch.loops.verify import LoopClosure, verify_query
+from graffmatch.loops.verify import LoopClosure
 
 Progress = Callable[[str, int, int], None]
 LANDMARK_DIR = "landmarks"

@@ -11,14 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 from graffmatch.geometry.transforms import transform_errors
+from graffmatch.loops.plan import run_plan, verification_plan, verify_query
 from graffmatch.loops.quickcheck import QuickCheckConfig, quick_index
-from graffmatch.loops.verify import (
-    VerificationConfig,
-    prior_contrast_of,
-    run_plan,
-    verification_plan,
-    verify_query,
-)
+from graffmatch.loops.verify import VerificationConfig, prior_contrast_of
 from tests.loops.conftest import _detector
 
 

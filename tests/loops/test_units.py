@@ -266,8 +266,8 @@ def test_quick_gate_and_early_stop_keep_the_accepted_candidate():
     verified first whatever its retrieval rank, and verification stops once it is accepted."""
     from graffmatch.datasets.landmark_scene import make_scene_pair
     from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig
+    from graffmatch.loops.plan import verify_query
     from graffmatch.loops.quickcheck import quick_index
-    from graffmatch.loops.verify import verify_query
 
     pair = make_scene_pair(seed=0, translation=(3.0, 1.0, 0.0))  # reverse direction, 3 m apart
     maps = {0: pair.source, 1: make_scene_pair(seed=10).target, 2: make_scene_pair(seed=12).target,
