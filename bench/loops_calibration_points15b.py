@@ -127,20 +127,15 @@ def policy_records(recs: dict[int, dict], has_scan: np.ndarray, vcfg, points: bo
     return out
 
 
-def contrasts(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarray, cfg) -> dict:
-    """(prior, turned) of every recorded quick-rejected cloud pair at the odometry's relative pose
-    (``loops.verify.prior_contrast_of``, the code ``verify_query`` runs), kept in ``cache``."""
-    import json
 
+def quick_rejected_cloud_pairs(out: Path, recs: dict, has: np.ndarray, v, with_scan_pass: bool):
+    """(query, match, (landmarks, scan cloud) of each) of every recorded verified pair of two cloud-keeping
+    scans that the quick gate rejects (``with_scan_pass``: only those whose scan pass was recorded); the
+    pairs the screen and the rescans revisit, each scan's files loaded once."""
     from graffmatch.loops.database import load_landmarks, load_scan_cloud
-    from graffmatch.loops.detector import LoopDetector
     from graffmatch.loops.plan import quick_gate
-    from graffmatch.loops.verify import prior_contrast_of
 
-    if cache.is_file():
-        return {(int(a), int(b)): tuple(v) for a, b, *v in json.loads(cache.read_text())}
-    v, matcher = cfg.verification, LoopDetector(cfg).matcher
-    lm = {}
+    lm: dict = {}
 
     def load(i: int):
         if i not in lm:
@@ -148,17 +143,31 @@ def contrasts(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarr
             lm[i] = (load_landmarks(f), load_scan_cloud(f))
         return lm[i]
 
-    rows = []
     for q, r in recs.items():
         if not has[q]:
             continue
         for c in r["candidates"]:
             j = int(c["match"])
-            if not (c.get("verified") and has[j]) or quick_gate(
+            if not (c.get("verified") and has[j] and (not with_scan_pass or "scan_seconds" in c)) or quick_gate(
                     int(c["quick_score"]), float(c["quick_fraction"]), float(c["quick_translation_m"]), v):
                 continue
-            (lq, sq), (lj, sj) = load(q), load(j)
-            rows.append([int(q), j, *prior_contrast_of(sq, sj, lq, lj, np.linalg.solve(odo[j], odo[q]), matcher)])
+            yield q, j, load(q), load(j)
+
+
+def contrasts(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarray, cfg) -> dict:
+    """(prior, turned) of every recorded quick-rejected cloud pair at the odometry's relative pose
+    (``loops.verify.prior_contrast_of``, the code ``verify_query`` runs), kept in ``cache``."""
+    import json
+
+    from graffmatch.loops.detector import LoopDetector
+    from graffmatch.loops.verify import prior_contrast_of
+
+    if cache.is_file():
+        return {(int(a), int(b)): tuple(v) for a, b, *v in json.loads(cache.read_text())}
+    matcher = LoopDetector(cfg).matcher
+    rows = []
+    for q, j, (lq, sq), (lj, sj) in quick_rejected_cloud_pairs(out, recs, has, cfg.verification, False):
+        rows.append([int(q), j, *prior_contrast_of(sq, sj, lq, lj, np.linalg.solve(odo[j], odo[q]), matcher)])
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(rows))
     return {(a, b): (x, y) for a, b, x, y in rows}
@@ -170,35 +179,17 @@ def rescans(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarray
     ``cache``. Only these pairs: the odometry start is for the screened ones (``scans_screen_start``)."""
     import json
 
-    from graffmatch.loops.database import load_landmarks, load_scan_cloud
     from graffmatch.loops.detector import LoopDetector
-    from graffmatch.loops.plan import quick_gate
     from graffmatch.loops.verify import scan_pass
 
     if cache.is_file():
         return {(int(r["query"]), int(r["match"])): r for r in json.loads(cache.read_text())}
     v, matcher = cfg.verification, LoopDetector(cfg).matcher
-    lm = {}
-
-    def load(i: int):
-        if i not in lm:
-            f = out / "landmarks" / f"{i:06d}.npz"
-            lm[i] = (load_landmarks(f), load_scan_cloud(f))
-        return lm[i]
-
     rows = []
-    for q, r in recs.items():
-        if not has[q]:
-            continue
-        for c in r["candidates"]:
-            j = int(c["match"])
-            if not (c.get("verified") and has[j] and "scan_seconds" in c) or quick_gate(
-                    int(c["quick_score"]), float(c["quick_fraction"]), float(c["quick_translation_m"]), v):
-                continue
-            (lq, sq), (lj, sj) = load(q), load(j)
-            sp = scan_pass(lq, lj, sq, sj, matcher, v, (np.linalg.solve(odo[j], odo[q]),) if start else ())
-            sp["scan_T"] = None if sp["scan_T"] is None else np.asarray(sp["scan_T"]).ravel().tolist()
-            rows.append({"query": int(q), "match": j, **sp})
+    for q, j, (lq, sq), (lj, sj) in quick_rejected_cloud_pairs(out, recs, has, v, True):
+        sp = scan_pass(lq, lj, sq, sj, matcher, v, (np.linalg.solve(odo[j], odo[q]),) if start else ())
+        sp["scan_T"] = None if sp["scan_T"] is None else np.asarray(sp["scan_T"]).ravel().tolist()
+        rows.append({"query": int(q), "match": j, **sp})
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(rows))
     return {(r["query"], r["match"]): r for r in rows}
