@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, write_json
 from bench_loops import simulate
 from loops_calibration import CALIBRATION_DRIVES, calibration_config, score
+from loops_calibration_scans import predictions
 
 WINDOWS = [0, 1, 2, 3, 5]
 MIN_AGREEING = [5, 4, 3, 2]
@@ -85,18 +86,6 @@ def all_records(recs: dict[int, dict], vcfg) -> dict[int, dict]:
             kept.append({**c, "confidence": conf})
         out[q] = {**r, "candidates": kept}
     return out
-
-
-def predictions(recs: dict[int, dict]) -> list:
-    from graffmatch.evaluation.sequence_benchmark import Prediction
-
-    preds = []
-    for q, r in recs.items():
-        cs = [c for c in r["candidates"] if c["T"] is not None]
-        if cs:
-            b = max(cs, key=lambda c: (c["confidence"], -c["rank"]))
-            preds.append(Prediction(int(q), int(b["match"]), float(b["confidence"]), np.asarray(b["T"]).reshape(4, 4)))
-    return preds
 
 
 def e2e_true(poses: np.ndarray, q: int, c: dict) -> bool:

@@ -60,7 +60,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, write_json
 from bench_loops import simulate
 from loops_calibration import CALIBRATION_DRIVES, score
-from loops_calibration_scans import DEFAULT_MAX_VERIFIED, e2e_true, predictions, run_config
+from loops_calibration_scans import (
+    DEFAULT_MAX_VERIFIED,
+    predictions,
+    run_config,
+    stress_tally,
+)
 
 K = 8
 #: Session 16's grid also runs on two more calibration drives (never reported, never used before): the
@@ -251,27 +256,18 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
                                              float(c["quick_translation_m"]), v))
             on_scans += sum(1 for r in final.values() for c in r["candidates"]
                             if c.get("on_scans") and c["confidence"] >= v.min_confidence)
-            for q, r in recs.items():  # stress set: every verified cloud pair the setting can reach
-                for c in r["candidates"]:
-                    j = int(c["match"])
-                    if not c.get("verified", False) or not (has[q] and has[j]):
-                        continue
-                    if not quick_gate(int(c["quick_score"]), float(c["quick_fraction"]),
-                                      float(c["quick_translation_m"]), v):
-                        if not skip or (ratio is not None and not screens_in(cons[ds.name].get((q, j), (0, 0)), v)):
-                            continue
-                        n_screened += 1
-                    _, T, by_scans = candidate_confidence(c, True, v, points)
-                    if not by_scans:
-                        continue
-                    ok, e = e2e_true(poses, q, j, T)
-                    if ok:
-                        s_true += 1
-                    else:
-                        s_false += 1
-                        false_rows.append({"drive": ds.name, "query": int(q), "match": j,
-                                           "scan_origin": c.get("scan_origin"), "scan_confidence": c["scan_confidence"],
-                                           "scan_n_agreeing": c["scan_n_agreeing"], "gt_m_deg_m": e})
+            def reaches(q: int, c: dict, v=v, name=ds.name, skip=skip, ratio=ratio) -> bool:  # pairs the setting reaches
+                nonlocal n_screened
+                if quick_gate(int(c["quick_score"]), float(c["quick_fraction"]), float(c["quick_translation_m"]), v):
+                    return True
+                if not skip or (ratio is not None and not screens_in(cons[name].get((q, int(c["match"])), (0, 0)), v)):
+                    return False
+                n_screened += 1
+                return True
+
+            t, f, rows_f = stress_tally(ds.name, recs, has, poses,
+                                        lambda c, v=v, points=points: candidate_confidence(c, True, v, points), reaches)
+            s_true, s_false, false_rows = s_true + t, s_false + f, false_rows + rows_f
         g = {"quick_order_radius": order, "quick_order_odometry": odo_order, "point_hypotheses": points, "scans_points_min_agreeing": a_min,
              "scans_skip_quick_check": skip, "scans_skip_max": m, "scans_screen_min_ratio": ratio, "drives": rows,
              "sum_e2e_r100p": round(sum(r["e2e_r100p"] for r in rows.values()), 6),
@@ -395,22 +391,9 @@ def main() -> None:
             rows[ds.name] = score(ds, predictions(final), c2)
             on_scans += sum(1 for r in final.values() for c in r["candidates"]
                             if c.get("on_scans") and c["confidence"] >= v.min_confidence)
-            for q, r in recs.items():  # stress set: every verified cloud pair
-                for c in r["candidates"]:
-                    if not c.get("verified", False) or not (has[q] and has[int(c["match"])]):
-                        continue
-                    _, T, by_scans = candidate_confidence(c, True, v, points)
-                    if not by_scans:
-                        continue
-                    ok, e = e2e_true(poses, q, int(c["match"]), T)
-                    if ok:
-                        s_true += 1
-                    else:
-                        s_false += 1
-                        false_rows.append({"drive": ds.name, "query": int(q), "match": int(c["match"]),
-                                           "scan_origin": c.get("scan_origin"),
-                                           "scan_confidence": c["scan_confidence"],
-                                           "scan_n_agreeing": c["scan_n_agreeing"], "gt_m_deg_m": e})
+            t, f, rows_f = stress_tally(ds.name, recs, has, poses,  # every verified cloud pair
+                                        lambda c, v=v, points=points: candidate_confidence(c, True, v, points))
+            s_true, s_false, false_rows = s_true + t, s_false + f, false_rows + rows_f
         g = {"point_hypotheses": points, "scans_points_min_agreeing": a_min, "scans_skip_quick_check": skip,
              "scans_skip_max": m, "drives": rows,
              "sum_e2e_r100p": round(sum(r["e2e_r100p"] for r in rows.values()), 6),

@@ -118,6 +118,32 @@ def policy_records(recs: dict[int, dict], has_scan: np.ndarray, vcfg) -> dict[in
     return out
 
 
+
+def stress_tally(name: str, recs: dict, has: np.ndarray, poses: np.ndarray, accepts,
+                 reaches=None) -> tuple[int, int, list[dict]]:
+    """The stress set of one drive: (right, wrong, the wrong ones) of the scan rule's accepts among every
+    verified pair of two cloud-keeping scans (``reaches(q, c)``, if given: only the pairs a setting can
+    reach). ``accepts(c)`` is a ``candidate_confidence``: (confidence, T, accepted on scans)."""
+    right = wrong = 0
+    rows: list[dict] = []
+    for q, r in recs.items():
+        for c in r["candidates"]:
+            j = int(c["match"])
+            if not c.get("verified", False) or not (has[q] and has[j]) or (reaches is not None and not reaches(q, c)):
+                continue
+            _, T, by_scans = accepts(c)
+            if not by_scans:
+                continue
+            ok, e = e2e_true(poses, q, j, T)
+            if ok:
+                right += 1
+            else:
+                wrong += 1
+                rows.append({"drive": name, "query": int(q), "match": j, "scan_origin": c.get("scan_origin"),
+                             "scan_confidence": c["scan_confidence"], "scan_n_agreeing": c["scan_n_agreeing"],
+                             "gt_m_deg_m": e})
+    return right, wrong, rows
+
 def predictions(recs: dict[int, dict]) -> list:
     from graffmatch.evaluation.sequence_benchmark import Prediction
 
@@ -201,21 +227,8 @@ def main() -> None:
                             if c.get("on_scans") and c["confidence"] >= v.min_confidence)
             if K == 0:
                 continue
-            for q, r in recs.items():  # stress set: every verified candidate
-                for c in r["candidates"]:
-                    if not c.get("verified", False) or not (has[q] and has[int(c["match"])]):
-                        continue
-                    _, T, by_scans = candidate_confidence(c, True, v)
-                    if not by_scans:
-                        continue
-                    ok, e = e2e_true(poses, q, int(c["match"]), T)
-                    if ok:
-                        s_true += 1
-                    else:
-                        s_false += 1
-                        false_rows.append({"drive": ds.name, "query": int(q), "match": int(c["match"]),
-                                           "scan_confidence": c["scan_confidence"],
-                                           "scan_n_agreeing": c["scan_n_agreeing"], "gt_m_deg_m": e})
+            t, f, rows_f = stress_tally(ds.name, recs, has, poses, lambda c, v=v: candidate_confidence(c, True, v))
+            s_true, s_false, false_rows = s_true + t, s_false + f, false_rows + rows_f
         g = {"scan_cloud_below": K, "scans_min_confidence": c_min, "scans_min_agreeing": a_min,
              "scans_skip_quick_check": skip, "drives": rows,
              "sum_e2e_r100p": round(sum(r["e2e_r100p"] for r in rows.values()), 6),
