@@ -181,7 +181,7 @@ def contrasts(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarr
 def rescans(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarray, cfg, start: bool) -> dict:
     """The scan pass of every recorded quick-rejected cloud pair run again on this code (session 16b),
     with the drift odometry's relative pose as a start of its point hypotheses or without; kept in
-    ``cache``. Only these pairs: the odometry start is for the screened ones (``scans_screen_start``)."""
+    ``cache``. Only these pairs: an odometry start would be for the screened ones (measured, not used: docs/loops.md 16b)."""
     import json
 
     from graffmatch.loops.detector import LoopDetector
