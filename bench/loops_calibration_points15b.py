@@ -62,7 +62,9 @@ from bench_loops import simulate
 from loops_calibration import CALIBRATION_DRIVES, score
 from loops_calibration_scans import (
     DEFAULT_MAX_VERIFIED,
+    grid_row,
     predictions,
+    row_line,
     run_config,
     stress_tally,
 )
@@ -268,19 +270,13 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
             t, f, rows_f = stress_tally(ds.name, recs, has, poses,
                                         lambda c, v=v, points=points: candidate_confidence(c, True, v, points), reaches)
             s_true, s_false, false_rows = s_true + t, s_false + f, false_rows + rows_f
-        g = {"quick_order_radius": order, "quick_order_odometry": odo_order, "point_hypotheses": points, "scans_points_min_agreeing": a_min,
-             "scans_skip_quick_check": skip, "scans_skip_max": m, "scans_screen_min_ratio": ratio, "drives": rows,
-             "sum_e2e_r100p": round(sum(r["e2e_r100p"] for r in rows.values()), 6),
-             "accepted_e2e_false": sum(r["accepted_e2e_false"] for r in rows.values()),
-             "accepted_on_scans_under_policy": on_scans, "quick_rejected_verified_under_policy": n_extra,
-             "stress_quick_rejected_reached": n_screened, "stress_scans_true": s_true,
-             "stress_scans_false": s_false, "stress_false_rows": false_rows[:20]}
+        g = grid_row({"quick_order_radius": order, "quick_order_odometry": odo_order, "point_hypotheses": points,
+                      "scans_points_min_agreeing": a_min, "scans_skip_quick_check": skip, "scans_skip_max": m,
+                      "scans_screen_min_ratio": ratio}, rows, on_scans, (s_true, s_false, false_rows),
+                     quick_rejected_verified_under_policy=n_extra, stress_quick_rejected_reached=n_screened)
         grid.append(g)
-        print(f"order {int(order)} odo {int(odo_order)} points {int(points)} a {a_min} skip {int(skip)} m {m} s {ratio}: sum "
-              f"{g['sum_e2e_r100p']:.3f} false {g['accepted_e2e_false']} on-scans {on_scans} extra-verified {n_extra} "
-              f"| stress reached {n_screened} true {s_true} false {s_false} |",
-              " ".join(f"{n.replace('sim-', '').replace('+deskew', '')}:{r['e2e_r100p']:.3f}({r['accepted_e2e_false']})"
-                       for n, r in rows.items()), flush=True)
+        print(f"order {int(order)} odo {int(odo_order)} points {int(points)} a {a_min} skip {int(skip)} m {m} s {ratio}: "
+              f"extra-verified {n_extra} stress reached {n_screened} {row_line(g, 3)}", flush=True)
     ok = [g for g in grid if g["accepted_e2e_false"] == 0 and g["stress_scans_false"] == 0]
     strict = lambda g: (g["scans_screen_min_ratio"] is None, not g["quick_order_radius"],  # noqa: E731
                         g["scans_screen_min_ratio"] or 0, -(g["scans_skip_max"] or 0), g["scans_points_min_agreeing"])
@@ -394,17 +390,10 @@ def main() -> None:
             t, f, rows_f = stress_tally(ds.name, recs, has, poses,  # every verified cloud pair
                                         lambda c, v=v, points=points: candidate_confidence(c, True, v, points))
             s_true, s_false, false_rows = s_true + t, s_false + f, false_rows + rows_f
-        g = {"point_hypotheses": points, "scans_points_min_agreeing": a_min, "scans_skip_quick_check": skip,
-             "scans_skip_max": m, "drives": rows,
-             "sum_e2e_r100p": round(sum(r["e2e_r100p"] for r in rows.values()), 6),
-             "accepted_e2e_false": sum(r["accepted_e2e_false"] for r in rows.values()),
-             "accepted_on_scans_under_policy": on_scans, "stress_scans_true": s_true, "stress_scans_false": s_false,
-             "stress_false_rows": false_rows[:20]}
+        g = grid_row({"point_hypotheses": points, "scans_points_min_agreeing": a_min, "scans_skip_quick_check": skip,
+                      "scans_skip_max": m}, rows, on_scans, (s_true, s_false, false_rows))
         grid.append(g)
-        print(f"points {int(points)} a {a_min} skip {int(skip)} max {m}: sum {g['sum_e2e_r100p']:.3f} false "
-              f"{g['accepted_e2e_false']} on-scans {on_scans} | stress true {s_true} false {s_false} |",
-              " ".join(f"{n.replace('sim-', '').replace('+deskew', '')}:{r['e2e_r100p']:.3f}({r['accepted_e2e_false']})"
-                       for n, r in rows.items()), flush=True)
+        print(f"points {int(points)} a {a_min} skip {int(skip)} max {m}: {row_line(g, 3)}", flush=True)
     ok = [g for g in grid if g["accepted_e2e_false"] == 0 and g["stress_scans_false"] == 0]
     best = max(ok, key=lambda g: (round(g["sum_e2e_r100p"], 9), not g["point_hypotheses"],
                                   g["scans_points_min_agreeing"], not g["scans_skip_quick_check"],

@@ -144,6 +144,25 @@ def stress_tally(name: str, recs: dict, has: np.ndarray, poses: np.ndarray, acce
                              "gt_m_deg_m": e})
     return right, wrong, rows
 
+
+def grid_row(setting: dict, rows: dict, on_scans: int, stress: tuple[int, int, list], **extra) -> dict:
+    """One grid row of a loop calibration: the setting, each drive's scores, their sums, the loops
+    accepted on scans under the policy and the stress set (right, wrong, the first 20 wrong)."""
+    s_true, s_false, false_rows = stress
+    return {**setting, "drives": rows, "sum_e2e_r100p": round(sum(r["e2e_r100p"] for r in rows.values()), 6),
+            "accepted_e2e_false": sum(r["accepted_e2e_false"] for r in rows.values()),
+            "accepted_on_scans_under_policy": on_scans, **extra, "stress_scans_true": s_true,
+            "stress_scans_false": s_false, "stress_false_rows": false_rows[:20]}
+
+
+def row_line(g: dict, digits: int) -> str:
+    """A grid row's sums, stress set and per-drive e2e R@100%P (wrong loops in brackets) for the log."""
+    return (f"sum {g['sum_e2e_r100p']:.3f} false {g['accepted_e2e_false']} on-scans "
+            f"{g['accepted_on_scans_under_policy']} | stress true {g['stress_scans_true']} false "
+            f"{g['stress_scans_false']} | " + " ".join(
+                f"{n.replace('sim-', '').replace('+deskew', '')}:{r['e2e_r100p']:.{digits}f}({r['accepted_e2e_false']})"
+                for n, r in g["drives"].items()))
+
 def predictions(recs: dict[int, dict]) -> list:
     from graffmatch.evaluation.sequence_benchmark import Prediction
 
@@ -229,17 +248,10 @@ def main() -> None:
                 continue
             t, f, rows_f = stress_tally(ds.name, recs, has, poses, lambda c, v=v: candidate_confidence(c, True, v))
             s_true, s_false, false_rows = s_true + t, s_false + f, false_rows + rows_f
-        g = {"scan_cloud_below": K, "scans_min_confidence": c_min, "scans_min_agreeing": a_min,
-             "scans_skip_quick_check": skip, "drives": rows,
-             "sum_e2e_r100p": round(sum(r["e2e_r100p"] for r in rows.values()), 6),
-             "accepted_e2e_false": sum(r["accepted_e2e_false"] for r in rows.values()),
-             "accepted_on_scans_under_policy": on_scans, "stress_scans_true": s_true, "stress_scans_false": s_false,
-             "stress_false_rows": false_rows[:20]}
+        g = grid_row({"scan_cloud_below": K, "scans_min_confidence": c_min, "scans_min_agreeing": a_min,
+                      "scans_skip_quick_check": skip}, rows, on_scans, (s_true, s_false, false_rows))
         grid.append(g)
-        print(f"K {K} c {c_min} a {a_min} skip {int(skip)}: sum {g['sum_e2e_r100p']:.3f} false "
-              f"{g['accepted_e2e_false']} on-scans {on_scans} | stress true {s_true} false {s_false} |",
-              " ".join(f"{n.replace('sim-', '').replace('+deskew', '')}:{r['e2e_r100p']:.2f}({r['accepted_e2e_false']})"
-                       for n, r in rows.items()), flush=True)
+        print(f"K {K} c {c_min} a {a_min} skip {int(skip)}: {row_line(g, 2)}", flush=True)
     ok = [g for g in grid if g["accepted_e2e_false"] == 0 and g["stress_scans_false"] == 0
           and max(r["bytes_mean"] for r in g["drives"].values()) <= 5000]
     best = max(ok, key=lambda g: (round(g["sum_e2e_r100p"], 9), g["scans_min_confidence"], g["scans_min_agreeing"],
