@@ -135,10 +135,12 @@ def policy_records(recs: dict[int, dict], has_scan: np.ndarray, vcfg, points: bo
 
 
 
-def quick_rejected_cloud_pairs(out: Path, recs: dict, has: np.ndarray, v, with_scan_pass: bool):
+def quick_rejected_cloud_pairs(out: Path, recs: dict, has: np.ndarray, v, with_scan_pass: bool,
+                               quick_rejected: bool = True):
     """(query, match, (landmarks, scan cloud) of each) of every recorded verified pair of two cloud-keeping
-    scans that the quick gate rejects (``with_scan_pass``: only those whose scan pass was recorded); the
-    pairs the screen and the rescans revisit, each scan's files loaded once."""
+    scans that the quick gate rejects (``with_scan_pass``: only those whose scan pass was recorded;
+    ``quick_rejected`` False: the quick-passing ones too); the pairs the screen and the rescans revisit,
+    each scan's files loaded once."""
     from graffmatch.loops.database import load_landmarks, load_scan_cloud
     from graffmatch.loops.plan import quick_gate
 
@@ -155,8 +157,9 @@ def quick_rejected_cloud_pairs(out: Path, recs: dict, has: np.ndarray, v, with_s
             continue
         for c in r["candidates"]:
             j = int(c["match"])
-            if not (c.get("verified") and has[j] and (not with_scan_pass or "scan_seconds" in c)) or quick_gate(
-                    int(c["quick_score"]), float(c["quick_fraction"]), float(c["quick_translation_m"]), v):
+            if not (c.get("verified") and has[j] and (not with_scan_pass or "scan_seconds" in c)) or (
+                    quick_rejected and quick_gate(int(c["quick_score"]), float(c["quick_fraction"]),
+                                                  float(c["quick_translation_m"]), v)):
                 continue
             yield q, j, load(q), load(j)
 
@@ -180,10 +183,13 @@ def contrasts(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarr
     return {(a, b): (x, y) for a, b, x, y in rows}
 
 
-def rescans(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarray, cfg, start: bool) -> dict:
+def rescans(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarray, cfg, start: bool,
+            every: bool = False) -> dict:
     """The scan pass of every recorded quick-rejected cloud pair run again on this code (session 16b),
     with the drift odometry's relative pose as a start of its point hypotheses or without; kept in
-    ``cache``. Only these pairs: an odometry start would be for the screened ones (measured, not used: docs/loops.md 16b)."""
+    ``cache``. Only these pairs: an odometry start would be for the screened ones (measured, not used: docs/loops.md 16b).
+    ``every`` (session 17): every recorded scan pass of a cloud pair, quick-passing too, at ``cfg``'s
+    ``scans_max_conflict``."""
     import json
 
     from graffmatch.loops.detector import LoopDetector
@@ -193,7 +199,7 @@ def rescans(out: Path, cache: Path, recs: dict, has: np.ndarray, odo: np.ndarray
         return {(int(r["query"]), int(r["match"])): r for r in json.loads(cache.read_text())}
     v, matcher = cfg.verification, LoopDetector(cfg).matcher
     rows = []
-    for q, j, (lq, sq), (lj, sj) in quick_rejected_cloud_pairs(out, recs, has, v, True):
+    for q, j, (lq, sq), (lj, sj) in quick_rejected_cloud_pairs(out, recs, has, v, True, not every):
         sp = scan_pass(lq, lj, sq, sj, matcher, v, (np.linalg.solve(odo[j], odo[q]),) if start else ())
         sp["scan_T"] = None if sp["scan_T"] is None else np.asarray(sp["scan_T"]).ravel().tolist()
         rows.append({"query": int(q), "match": j, **sp})
@@ -211,6 +217,49 @@ SHIPPED_16 = {"quick_order_radius": True, "scans_points_min_agreeing": 0, "scans
               "scans_screen_min_ratio": 3.0}
 
 
+def replay_row(drives: list, cons: dict, cfg, base_v, order: bool, points: bool, a_min: int, skip: bool,
+               m: int | None, ratio: float | None, odo_order: bool, extra: dict | None = None) -> dict:
+    """One grid row: the default policy replayed on every drive's records under these settings (the
+    quick-check skip for cloud pairs behind the first screen, ratio ``ratio``, at most ``m`` a query;
+    ``scans_points_min_agreeing`` ``a_min``; the radius and odometry orders), scored, with its stress set."""
+    from graffmatch.loops.consistency import apply_sequence_consistency
+    from graffmatch.loops.plan import quick_gate, screens_in
+
+    v = base_v.model_copy(update={"quick_order_radius": order, "scans_points_min_agreeing": a_min,
+                                  "scans_skip_quick_check": skip, "scans_skip_max": m,
+                                  "scans_screen_min_ratio": ratio, "quick_order_odometry": odo_order})
+    c2 = cfg.model_copy(update={"verification": v})
+    rows, s_true, s_false, on_scans, false_rows, n_screened, n_extra = {}, 0, 0, 0, [], 0, 0
+    for ds, odo, poses, recs, has, _ in drives:
+        con = cons[ds.name] if ratio is not None else None
+        pol = policy_records(recs, has, v, points, np.asarray(odo), con)
+        final = apply_sequence_consistency(pol, odo, v)
+        rows[ds.name] = score(ds, predictions(final), c2)
+        n_extra += sum(1 for r in pol.values() for c in r["candidates"]
+                       if not quick_gate(int(c["quick_score"]), float(c["quick_fraction"]),
+                                         float(c["quick_translation_m"]), v))
+        on_scans += sum(1 for r in final.values() for c in r["candidates"]
+                        if c.get("on_scans") and c["confidence"] >= v.min_confidence)
+
+        def reaches(q: int, c: dict, v=v, name=ds.name) -> bool:  # the pairs the setting reaches
+            nonlocal n_screened
+            if quick_gate(int(c["quick_score"]), float(c["quick_fraction"]), float(c["quick_translation_m"]), v):
+                return True
+            if not skip or (ratio is not None and not screens_in(cons[name].get((q, int(c["match"])), (0, 0)), v)):
+                return False
+            n_screened += 1
+            return True
+
+        t, f, rows_f = stress_tally(ds.name, recs, has, poses,
+                                    lambda c, v=v: candidate_confidence(c, True, v, points), reaches)
+        s_true, s_false, false_rows = s_true + t, s_false + f, false_rows + rows_f
+    return grid_row({**(extra or {}), "quick_order_radius": order, "quick_order_odometry": odo_order,
+                     "point_hypotheses": points, "scans_points_min_agreeing": a_min, "scans_skip_quick_check": skip,
+                     "scans_skip_max": m, "scans_screen_min_ratio": ratio}, rows, on_scans,
+                    (s_true, s_false, false_rows), quick_rejected_verified_under_policy=n_extra,
+                    stress_quick_rejected_reached=n_screened)
+
+
 def grid16(args, cfg, drives: list, t0: float) -> None:
     """Session 16's grid: the quick-check skip for cloud pairs behind the first screen (ratio s, at most
     m screened a query, nearest by the odometry first), scans_points_min_agreeing a, point hypotheses
@@ -225,8 +274,6 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
     ``--grid 16b`` (written before its rows, docs/loops.md session 16b): the same
     filter over 14 drives, ratios up to 4; among the rows tied at the most recall session 16's shipped row
     (order on, ratio 3, cap 1, a 0) first, then the stricter as above."""
-    from graffmatch.loops.consistency import apply_sequence_consistency
-    from graffmatch.loops.plan import quick_gate, screens_in
 
     base_v = cfg.verification.model_copy(update={
         "max_verified": DEFAULT_MAX_VERIFIED, "stop_when_accepted": True, "scan_cloud_below": K,
@@ -243,40 +290,11 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
         settings = [(True, True, 0, True, m, s, odo) for m, s in ((2, 2.5), (1, 3.0)) for odo in (False, True)]
     grid = []
     for order, points, a_min, skip, m, ratio, odo_order in settings:
-        v = base_v.model_copy(update={"quick_order_radius": order, "scans_points_min_agreeing": a_min,
-                                      "scans_skip_quick_check": skip, "scans_skip_max": m,
-                                      "scans_screen_min_ratio": ratio, "quick_order_odometry": odo_order})
-        c2 = cfg.model_copy(update={"verification": v})
-        rows, s_true, s_false, on_scans, false_rows, n_screened, n_extra = {}, 0, 0, 0, [], 0, 0
-        for ds, odo, poses, recs, has, _ in drives:
-            con = cons[ds.name] if ratio is not None else None
-            pol = policy_records(recs, has, v, points, np.asarray(odo), con)
-            final = apply_sequence_consistency(pol, odo, v)
-            rows[ds.name] = score(ds, predictions(final), c2)
-            n_extra += sum(1 for r in pol.values() for c in r["candidates"]
-                           if not quick_gate(int(c["quick_score"]), float(c["quick_fraction"]),
-                                             float(c["quick_translation_m"]), v))
-            on_scans += sum(1 for r in final.values() for c in r["candidates"]
-                            if c.get("on_scans") and c["confidence"] >= v.min_confidence)
-            def reaches(q: int, c: dict, v=v, name=ds.name, skip=skip, ratio=ratio) -> bool:  # pairs the setting reaches
-                nonlocal n_screened
-                if quick_gate(int(c["quick_score"]), float(c["quick_fraction"]), float(c["quick_translation_m"]), v):
-                    return True
-                if not skip or (ratio is not None and not screens_in(cons[name].get((q, int(c["match"])), (0, 0)), v)):
-                    return False
-                n_screened += 1
-                return True
-
-            t, f, rows_f = stress_tally(ds.name, recs, has, poses,
-                                        lambda c, v=v, points=points: candidate_confidence(c, True, v, points), reaches)
-            s_true, s_false, false_rows = s_true + t, s_false + f, false_rows + rows_f
-        g = grid_row({"quick_order_radius": order, "quick_order_odometry": odo_order, "point_hypotheses": points,
-                      "scans_points_min_agreeing": a_min, "scans_skip_quick_check": skip, "scans_skip_max": m,
-                      "scans_screen_min_ratio": ratio}, rows, on_scans, (s_true, s_false, false_rows),
-                     quick_rejected_verified_under_policy=n_extra, stress_quick_rejected_reached=n_screened)
+        g = replay_row(drives, cons, cfg, base_v, order, points, a_min, skip, m, ratio, odo_order)
         grid.append(g)
         print(f"order {int(order)} odo {int(odo_order)} points {int(points)} a {a_min} skip {int(skip)} m {m} s {ratio}: "
-              f"extra-verified {n_extra} stress reached {n_screened} {row_line(g, 3)}", flush=True)
+              f"extra-verified {g['quick_rejected_verified_under_policy']} stress reached "
+              f"{g['stress_quick_rejected_reached']} {row_line(g, 3)}", flush=True)
     ok = [g for g in grid if g["accepted_e2e_false"] == 0 and g["stress_scans_false"] == 0]
     strict = lambda g: (g["scans_screen_min_ratio"] is None, not g["quick_order_radius"],  # noqa: E731
                         g["scans_screen_min_ratio"] or 0, -(g["scans_skip_max"] or 0), g["scans_points_min_agreeing"])
@@ -299,6 +317,65 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
             "exception_if_tied": exception, "grid": grid})
 
 
+#: Session 17: the scan pass's own free-space conflict bar (None: the matcher's raw-scan 0.08), with the screen's
+#: ratio and cap again (a scan pass that accepts more may break their tie).
+T17_GRID: list[float | None] = [None, 0.09, 0.10, 0.11, 0.12]
+SHIPPED_16B = {"scans_max_conflict": None, "scans_skip_max": 2, "scans_screen_min_ratio": 2.5}
+
+
+def grid17(args, cfg, drives: list, t0: float) -> None:
+    """Session 17's grid: ``scans_max_conflict`` t (T17_GRID) x the screen's ratio (1.5-3) x cap (1-3), with the
+    shipped order on, odometry-nearest ties, a 0. For each t every recorded scan pass of a cloud pair (quick-passing
+    and quick-rejected) runs again on this code at t (cached next to the contrasts), and the policy is replayed on those.
+
+    Rule, written before any row was read (docs/loops.md session 17): the filter of 16b (no accepted loop that is not
+    an e2e TP on any of the 14 drives, no wrong scan-rule accept among the verified cloud pairs the setting can reach);
+    the most summed e2e R@100%P; among tied rows the shipped one (t None, 2.5, cap 2) first, then the stricter (t None,
+    then the lowest t; the higher ratio; the smaller cap). A changed default also needs downtown-s1 <= 20 ms a query at
+    k = 5 (measured after, interleaved with the shipped code)."""
+    base_v = cfg.verification.model_copy(update={
+        "max_verified": DEFAULT_MAX_VERIFIED, "stop_when_accepted": True, "scan_cloud_below": K,
+        "scans_min_confidence": 0.99, "scans_min_agreeing": 3})
+    cons = {ds.name: contrasts(args.out / ds.name / "ours", (args.contrast_cache or args.out) / f"{ds.name}.contrast16.json",
+                               recs, has, np.asarray(odo), cfg) for ds, odo, _p, recs, has, _ in drives}
+    grid = []
+    for t in T17_GRID:
+        ct = cfg.model_copy(update={"verification": cfg.verification.model_copy(update={"scans_max_conflict": t})})
+        drives_t = []
+        for ds, odo, poses, recs, has, secs in drives:
+            t1 = time.perf_counter()
+            cache = (args.contrast_cache or args.out) / f"{ds.name}.rescan17_{t if t is not None else 'matcher'}.json"
+            rs = rescans(args.out / ds.name / "ours", cache, recs, has, np.asarray(odo), ct, False, every=True)
+            recs_t = {q: {**r, "candidates": [{**c, **{k: x for k, x in rs.get((int(q), int(c["match"])), {}).items()
+                                                        if k not in ("query", "match")}} for c in r["candidates"]]}
+                      for q, r in recs.items()}
+            drives_t.append((ds, odo, poses, recs_t, has, secs))
+            print(f"{ds.name}: t {t}: {len(rs)} scan passes of cloud pairs ({time.perf_counter() - t1:.0f} s), "
+                  f"{sum(bool(x['scan_valid']) for x in rs.values())} valid", flush=True)
+        for m in M16_GRID:
+            for ratio in RATIO16_GRID:
+                g = replay_row(drives_t, cons, cfg, base_v, True, True, 0, True, m, ratio, True,
+                               extra={"scans_max_conflict": t})
+                grid.append(g)
+                print(f"t {t} m {m} s {ratio}: extra-verified {g['quick_rejected_verified_under_policy']} stress reached "
+                      f"{g['stress_quick_rejected_reached']} {row_line(g, 3)}", flush=True)
+    ok = [g for g in grid if g["accepted_e2e_false"] == 0 and g["stress_scans_false"] == 0]
+    shipped = lambda g: all(g[k] == v for k, v in SHIPPED_16B.items())  # noqa: E731
+    strict = lambda g: (g["scans_max_conflict"] is None, -(g["scans_max_conflict"] or 0),  # noqa: E731
+                        g["scans_screen_min_ratio"], -g["scans_skip_max"])
+    best = max(ok, key=lambda g: (round(g["sum_e2e_r100p"], 9), shipped(g), *strict(g)))
+    keys = ("scans_max_conflict", "scans_skip_max", "scans_screen_min_ratio", "sum_e2e_r100p", "stress_scans_true",
+            "stress_scans_false")
+    chosen = {k: best[k] for k in keys}
+    print("chosen:", chosen)
+    if args.json:
+        write_json(args.json, {
+            "machine": machine(), "wall_s": time.perf_counter() - t0, "drives": [d[0].name for d in drives],
+            "grid_kind": args.grid, "run_config_verification": cfg.verification.model_dump(mode="json"),
+            "run_config_matcher_verification": cfg.matcher.verification.model_dump(mode="json"), "chosen": chosen,
+            "grid": grid})
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=Path("/tmp/loops15-cal-data"))
@@ -308,10 +385,11 @@ def main() -> None:
     ap.add_argument("--drives", nargs="+", default=None, metavar="SUITE:SEED", help="a subset of the split")
     ap.add_argument("--replay-only", action="store_true")
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--grid", choices=["15b", "16", "16b", "16c"], default="15b",
+    ap.add_argument("--grid", choices=["15b", "16", "16b", "16c", "17"], default="15b",
                     help="15b: session 15b's grid (points x a x skip); 16: the first screen and the radius order; "
                     "16b: 16 on four more downtown drives, ratios up to 4, ties to the shipped row first; 16c: 16b's "
-                    "drives, equal quick scores odometry-nearest first, off / on")
+                    "drives, equal quick scores odometry-nearest first, off / on; 17: the scan pass's conflict bar x 16's screen, on 16b's "
+                    "drives")
     ap.add_argument("--contrast-cache", type=Path, default=None,
                     help="--grid 16: where the screens' contrasts are kept (one JSON a drive; default: --out)")
     ap.add_argument("--rescan", choices=["nostart", "start"], default=None,
@@ -335,7 +413,7 @@ def main() -> None:
             "calibration drives only"
     elif args.grid == "16":
         split = CALIBRATION_DRIVES + EXTRA_DRIVES_16
-    elif args.grid in ("16b", "16c"):
+    elif args.grid in ("16b", "16c", "17"):
         split = CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B
     drives = []
     for p in simulate(args.data, args.scans, "realistic", split):
@@ -369,6 +447,9 @@ def main() -> None:
                   f"{time.perf_counter() - t1:.0f} s, {sum(bool(x['scan_valid']) for x in rs.values())} valid", flush=True)
     if args.grid in ("16", "16b", "16c"):
         grid16(args, cfg, drives, t0)
+        return
+    if args.grid == "17":
+        grid17(args, cfg, drives, t0)
         return
     base_v = cfg.verification.model_copy(update={
         "max_verified": DEFAULT_MAX_VERIFIED, "stop_when_accepted": True, "scan_cloud_below": K,

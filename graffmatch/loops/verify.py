@@ -94,6 +94,9 @@ QUICK_ORDER_RADIUS = True
 #: gives many candidates 2-3 inliers and its partner missed the budget): 13.504 -> 13.550 summed on the 14
 #: drives (downtown 4 and 11), 0 wrong loops, the stress set unchanged. Without odometry: retrieval rank.
 QUICK_ORDER_ODOMETRY = True
+#: Session 17: the scan pass's own free-space conflict bar (None: the matcher's raw-scan 0.08), to be chosen on
+#: the 14 calibration drives (``--grid 17``, docs/loops.md session 17).
+SCANS_MAX_CONFLICT: float | None = None
 
 
 class VerificationConfig(BaseModel):
@@ -213,6 +216,13 @@ class VerificationConfig(BaseModel):
         "occupancy of translation votes at the odometry's yaw against a quarter turn or more away, ~1 ms) and only "
         "those whose contrast reaches this ratio are verified (the full scan pass costs 17-27 ms); None: no screen, "
         "best quick score first",
+    )
+    scans_max_conflict: float | None = Field(
+        SCANS_MAX_CONFLICT, gt=0, le=1,
+        description="the scan pass's free-space conflict bar in place of the matcher's raw-scan one "
+        "(verification.scans.max_conflict, chosen on whole-scan range images): the scan pass's images come from the "
+        "stored voxel clouds, a sparser sample, whose right poses conflict on 8-13 % of their points (calibration "
+        "drives, docs/loops.md session 17); None: the matcher's",
     )
     quick_order_radius: bool = Field(
         QUICK_ORDER_RADIUS,
@@ -389,6 +399,18 @@ def _verification_config(matcher: GraffMatcher | ScanMatcher):
     return cfg.matcher.verification if isinstance(matcher, ScanMatcher) else cfg.verification
 
 
+def _scan_pass_matcher(matcher: GraffMatcher | ScanMatcher, max_conflict: float | None) -> GraffMatcher | ScanMatcher:
+    """The matcher the scan pass decides with: ``matcher`` itself, or with ``max_conflict`` as its raw-scan
+    free-space bar (a shallow configuration copy, ~10 us: the scan pass costs ~25 ms)."""
+    if max_conflict is None:
+        return matcher
+    gcfg = matcher.config.matcher if isinstance(matcher, ScanMatcher) else matcher.config
+    v = gcfg.verification
+    update = ({"scans": v.scans.model_copy(update={"max_conflict": float(max_conflict)})} if v.scans is not None
+              else {"max_conflict": float(max_conflict)})
+    return GraffMatcher(gcfg.model_copy(update={"verification": v.model_copy(update=update)}))
+
+
 def _with_scan_ranges(ls: LandmarkSet, scan: NDArray) -> LandmarkSet:
     """``ls`` (same arrays) carrying the range image of its scan cloud as ``scan_ranges``.
 
@@ -435,7 +457,7 @@ def scan_pass(
     (T_candidate_query, e.g. the odometry's) join the point hypotheses (``Evidence.starts``)."""
     t0 = time.perf_counter()
     out = {"scan_valid": False, "scan_confidence": None, "scan_T": None, "scan_n_agreeing": 0,
-           "scan_overlap": 0.0, "scan_message": "", "scan_origin": None}
+           "scan_overlap": 0.0, "scan_message": "", "scan_origin": None, "scan_conflict": None}
     query, candidate = _with_scan_ranges(query, query_scan), _with_scan_ranges(candidate, candidate_scan)
     ev = scan_evidence(query, candidate, np.asarray(query_scan, float), np.asarray(candidate_scan, float),
                        _verification_config(matcher))
@@ -445,12 +467,15 @@ def scan_pass(
         out["scan_message"] = "too few scan points"
     else:
         try:
-            res = matcher.match(query, candidate, evidence=ev)
+            res = _scan_pass_matcher(matcher, config.scans_max_conflict).match(query, candidate, evidence=ev)
         except GraffMatchError as exc:
             res = None
             out["scan_message"] = str(exc)
         if res is not None:
             out.update(scan_valid=bool(res.valid), scan_message=res.message, scan_origin=res.info.get("origin"))
+            conflict = res.info.get("free_space_conflict")
+            if conflict is not None:
+                out["scan_conflict"] = float(max(conflict))
             mconf, T, n_agree, overlap = _scored(res, query, candidate, config)
             out["scan_confidence"] = mconf
             if T is not None:
