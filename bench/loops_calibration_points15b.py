@@ -76,6 +76,9 @@ EXTRA_DRIVES_16 = [("sim-downtown", 7), ("sim-downtown", 8)]
 #: Session 16b: four more downtown seeds never used anywhere (reported 1 and 5; calibration 2-4, 6-8; seed 0
 #: in tests and examples), because the ten above still tie on the screen's ratio and cap.
 EXTRA_DRIVES_16B = [("sim-downtown", 9), ("sim-downtown", 10), ("sim-downtown", 11), ("sim-downtown", 12)]
+#: Session 17: four more downtown seeds never used anywhere (fixed before simulating), because the 14 drives tie on
+#: the scan pass's conflict bar (docs/loops.md session 17).
+EXTRA_DRIVES_17 = [("sim-downtown", 13), ("sim-downtown", 14), ("sim-downtown", 15), ("sim-downtown", 16)]
 A_GRID = [0, 1, 2, 3]
 SKIP_GRID = [(False, None), (True, 1), (True, 2), (True, 5)]
 
@@ -396,6 +399,8 @@ def main() -> None:
                     help="--grid 16b: run the scan pass of every recorded quick-rejected cloud pair again on this code, "
                     "with (start) or without (nostart) the odometry's relative pose as a start (cached next to the "
                     "contrasts), and replay with those")
+    ap.add_argument("--drives17", action="store_true",
+                    help="--grid 17: also session 17's four downtown drives (seeds 13-16; record them first with --drives)")
     args = ap.parse_args()
 
     from graffmatch.datasets.registry import open_dataset
@@ -409,12 +414,14 @@ def main() -> None:
     split = CALIBRATION_DRIVES
     if args.drives:
         split = [(d.rsplit(":", 1)[0], int(d.rsplit(":", 1)[1])) for d in args.drives]
-        assert all(d in CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B for d in split), \
+        assert all(d in CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B + EXTRA_DRIVES_17 for d in split), \
             "calibration drives only"
     elif args.grid == "16":
         split = CALIBRATION_DRIVES + EXTRA_DRIVES_16
-    elif args.grid in ("16b", "16c", "17"):
+    elif args.grid in ("16b", "16c"):
         split = CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B
+    elif args.grid == "17":
+        split = CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B + (EXTRA_DRIVES_17 if args.drives17 else [])
     drives = []
     for p in simulate(args.data, args.scans, "realistic", split):
         ds, odo = prepare_drive(open_dataset("folder", p), "drift", True)
