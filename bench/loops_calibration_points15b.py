@@ -59,7 +59,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, write_json
 from bench_loops import simulate
-from loops_calibration import CALIBRATION_DRIVES, score
+from loops_calibration import CALIBRATION_DRIVES, MARGINS, score
 from loops_calibration_scans import (
     DEFAULT_MAX_VERIFIED,
     grid_row,
@@ -379,6 +379,44 @@ def grid17(args, cfg, drives: list, t0: float) -> None:
             "grid": grid})
 
 
+def grid17m(args, cfg, drives: list, t0: float) -> None:
+    """Session 17's step 3: the place margin again (session 8's grid MARGINS) with the shipped policy, the scan passes
+    rerun on this code at the matcher's bar (``--grid 17``'s caches). Session 8's rule (docs/loops.md session 17): the
+    smallest margin with no accepted loop beyond the radius on any drive, no accepted loop that is not an e2e TP and no
+    wrong scan-rule accept in the stress set."""
+    base_v = cfg.verification.model_copy(update={
+        "max_verified": DEFAULT_MAX_VERIFIED, "stop_when_accepted": True, "scan_cloud_below": K,
+        "scans_min_confidence": 0.99, "scans_min_agreeing": 3})
+    cons = {ds.name: contrasts(args.out / ds.name / "ours", (args.contrast_cache or args.out) / f"{ds.name}.contrast16.json",
+                               recs, has, np.asarray(odo), cfg) for ds, odo, _p, recs, has, _ in drives}
+    drives_t = []
+    for ds, odo, poses, recs, has, secs in drives:
+        cache = (args.contrast_cache or args.out) / f"{ds.name}.rescan17_matcher.json"
+        rs = rescans(args.out / ds.name / "ours", cache, recs, has, np.asarray(odo), cfg, False, every=True)
+        recs_t = {q: {**r, "candidates": [{**c, **{k: x for k, x in rs.get((int(q), int(c["match"])), {}).items()
+                                                    if k not in ("query", "match")}} for c in r["candidates"]]}
+                  for q, r in recs.items()}
+        drives_t.append((ds, odo, poses, recs_t, has, secs))
+    grid = []
+    for margin in MARGINS:
+        v = base_v.model_copy(update={"place_margin_m": margin})
+        g = replay_row(drives_t, cons, cfg, v, True, True, 0, True, base_v.scans_skip_max, base_v.scans_screen_min_ratio,
+                       True, extra={"place_margin_m": margin})
+        g["accepted_beyond_radius"] = sum(r["accepted_beyond_radius"] for r in g["drives"].values())
+        grid.append(g)
+        print(f"margin {margin}: beyond radius {g['accepted_beyond_radius']} {row_line(g, 3)}", flush=True)
+    ok = [g for g in grid if g["accepted_beyond_radius"] == 0 and g["accepted_e2e_false"] == 0
+          and g["stress_scans_false"] == 0]
+    best = min(ok, key=lambda g: g["place_margin_m"])
+    chosen = {k: best[k] for k in ("place_margin_m", "sum_e2e_r100p", "stress_scans_true", "stress_scans_false")}
+    print("chosen:", chosen)
+    if args.json:
+        write_json(args.json, {
+            "machine": machine(), "wall_s": time.perf_counter() - t0, "drives": [d[0].name for d in drives],
+            "grid_kind": args.grid, "run_config_verification": cfg.verification.model_dump(mode="json"),
+            "chosen": chosen, "grid": grid})
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", type=Path, default=Path("/tmp/loops15-cal-data"))
@@ -388,11 +426,11 @@ def main() -> None:
     ap.add_argument("--drives", nargs="+", default=None, metavar="SUITE:SEED", help="a subset of the split")
     ap.add_argument("--replay-only", action="store_true")
     ap.add_argument("--json", type=Path, default=None)
-    ap.add_argument("--grid", choices=["15b", "16", "16b", "16c", "17"], default="15b",
+    ap.add_argument("--grid", choices=["15b", "16", "16b", "16c", "17", "17m"], default="15b",
                     help="15b: session 15b's grid (points x a x skip); 16: the first screen and the radius order; "
                     "16b: 16 on four more downtown drives, ratios up to 4, ties to the shipped row first; 16c: 16b's "
                     "drives, equal quick scores odometry-nearest first, off / on; 17: the scan pass's conflict bar x 16's screen, on 16b's "
-                    "drives")
+                    "drives; 17m: the place margin with the shipped policy")
     ap.add_argument("--contrast-cache", type=Path, default=None,
                     help="--grid 16: where the screens' contrasts are kept (one JSON a drive; default: --out)")
     ap.add_argument("--rescan", choices=["nostart", "start"], default=None,
@@ -420,7 +458,7 @@ def main() -> None:
         split = CALIBRATION_DRIVES + EXTRA_DRIVES_16
     elif args.grid in ("16b", "16c"):
         split = CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B
-    elif args.grid == "17":
+    elif args.grid in ("17", "17m"):
         split = CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B + (EXTRA_DRIVES_17 if args.drives17 else [])
     drives = []
     for p in simulate(args.data, args.scans, "realistic", split):
@@ -457,6 +495,9 @@ def main() -> None:
         return
     if args.grid == "17":
         grid17(args, cfg, drives, t0)
+        return
+    if args.grid == "17m":
+        grid17m(args, cfg, drives, t0)
         return
     base_v = cfg.verification.model_copy(update={
         "max_verified": DEFAULT_MAX_VERIFIED, "stop_when_accepted": True, "scan_cloud_below": K,

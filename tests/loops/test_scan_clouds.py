@@ -105,6 +105,27 @@ def test_landmark_poor_pair_verified_through_the_stored_clouds(poor_db):
     assert neg["confidence"] == 0.0 and not neg.get("on_scans")
 
 
+def test_scan_pass_conflict_bar(poor_db):
+    """``scans_max_conflict`` is the scan pass's own free-space bar: KITTI 0 <- 5 on the stored clouds reports its
+    conflict (a few % on this right pose) and stays valid with the same pose at a bar above it; a bar below it
+    makes the verdict invalid with a message naming the bar, the pose and conflict unchanged; the default (None)
+    is the matcher's raw-scan bar."""
+    from graffmatch.loops.verify import scan_pass
+
+    det, _ = poor_db
+    (a, b, _c), (sa, sb, _sc) = det.db.landmarks, det.db.extra["scan"]
+    v = det.config.verification
+    assert v.scans_max_conflict is None
+    base = scan_pass(b, a, sb, sa, det.matcher, v)
+    conflict = base["scan_conflict"]
+    assert base["scan_valid"] and 0.0 < conflict < det.matcher.config.matcher.verification.scans.max_conflict
+    above = scan_pass(b, a, sb, sa, det.matcher, v.model_copy(update={"scans_max_conflict": min(1.0, 2 * conflict)}))
+    assert above["scan_valid"] and np.allclose(above["scan_T"], base["scan_T"], atol=1e-9)
+    below = scan_pass(b, a, sb, sa, det.matcher, v.model_copy(update={"scans_max_conflict": conflict / 2}))
+    assert not below["scan_valid"] and f"(> {conflict / 2:.0%})" in below["scan_message"], below["scan_message"]
+    assert below["scan_conflict"] == pytest.approx(conflict, abs=1e-12)
+
+
 def test_scans_loop_confidence_rule():
     """A scan-verified pair is a loop only when valid, confident, with enough agreeing landmarks
     and inside the place radius less the margin; its confidence is the scan verdict's."""
