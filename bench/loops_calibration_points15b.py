@@ -79,6 +79,8 @@ EXTRA_DRIVES_16B = [("sim-downtown", 9), ("sim-downtown", 10), ("sim-downtown", 
 #: Session 17: four more downtown seeds never used anywhere (fixed before simulating), because the 14 drives tie on
 #: the scan pass's conflict bar (docs/loops.md session 17).
 EXTRA_DRIVES_17 = [("sim-downtown", 13), ("sim-downtown", 14), ("sim-downtown", 15), ("sim-downtown", 16)]
+#: ... and its step 4, the last batch: eight more (docs/loops.md session 17).
+EXTRA_DRIVES_17B = [("sim-downtown", s) for s in range(17, 25)]
 A_GRID = [0, 1, 2, 3]
 SKIP_GRID = [(False, None), (True, 1), (True, 2), (True, 5)]
 
@@ -384,6 +386,8 @@ def grid17m(args, cfg, drives: list, t0: float) -> None:
     rerun on this code at the matcher's bar (``--grid 17``'s caches). Session 8's rule (docs/loops.md session 17): the
     smallest margin with no accepted loop beyond the radius on any drive, no accepted loop that is not an e2e TP and no
     wrong scan-rule accept in the stress set."""
+    from graffmatch.loops.verify import SCANS_SCREEN_MIN_RATIO, SCANS_SKIP_MAX
+
     base_v = cfg.verification.model_copy(update={
         "max_verified": DEFAULT_MAX_VERIFIED, "stop_when_accepted": True, "scan_cloud_below": K,
         "scans_min_confidence": 0.99, "scans_min_agreeing": 3})
@@ -400,8 +404,8 @@ def grid17m(args, cfg, drives: list, t0: float) -> None:
     grid = []
     for margin in MARGINS:
         v = base_v.model_copy(update={"place_margin_m": margin})
-        g = replay_row(drives_t, cons, cfg, v, True, True, 0, True, base_v.scans_skip_max, base_v.scans_screen_min_ratio,
-                       True, extra={"place_margin_m": margin})
+        g = replay_row(drives_t, cons, cfg, v, True, True, 0, True, SCANS_SKIP_MAX, SCANS_SCREEN_MIN_RATIO, True,
+                       extra={"place_margin_m": margin})  # the shipped screen (not the recording run's)
         g["accepted_beyond_radius"] = sum(r["accepted_beyond_radius"] for r in g["drives"].values())
         grid.append(g)
         print(f"margin {margin}: beyond radius {g['accepted_beyond_radius']} {row_line(g, 3)}", flush=True)
@@ -439,6 +443,8 @@ def main() -> None:
                     "contrasts), and replay with those")
     ap.add_argument("--drives17", action="store_true",
                     help="--grid 17: also session 17's four downtown drives (seeds 13-16; record them first with --drives)")
+    ap.add_argument("--drives17b", action="store_true",
+                    help="--grid 17 / 17m: also step 4's eight downtown drives (seeds 17-24; record them first with --drives)")
     args = ap.parse_args()
 
     from graffmatch.datasets.registry import open_dataset
@@ -452,14 +458,16 @@ def main() -> None:
     split = CALIBRATION_DRIVES
     if args.drives:
         split = [(d.rsplit(":", 1)[0], int(d.rsplit(":", 1)[1])) for d in args.drives]
-        assert all(d in CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B + EXTRA_DRIVES_17 for d in split), \
+        assert all(d in CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B + EXTRA_DRIVES_17 + EXTRA_DRIVES_17B
+                   for d in split), \
             "calibration drives only"
     elif args.grid == "16":
         split = CALIBRATION_DRIVES + EXTRA_DRIVES_16
     elif args.grid in ("16b", "16c"):
         split = CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B
     elif args.grid in ("17", "17m"):
-        split = CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B + (EXTRA_DRIVES_17 if args.drives17 else [])
+        split = CALIBRATION_DRIVES + EXTRA_DRIVES_16 + EXTRA_DRIVES_16B + (EXTRA_DRIVES_17 if args.drives17 else []) + (
+            EXTRA_DRIVES_17B if args.drives17b else [])
     drives = []
     for p in simulate(args.data, args.scans, "realistic", split):
         ds, odo = prepare_drive(open_dataset("folder", p), "drift", True)
