@@ -108,15 +108,16 @@ def test_landmark_poor_pair_verified_through_the_stored_clouds(poor_db):
 def test_scan_pass_conflict_bar(poor_db):
     """``scans_max_conflict`` is the scan pass's own free-space bar: KITTI 0 <- 5 on the stored clouds reports its
     conflict (a few % on this right pose) and stays valid with the same pose at a bar above it; a bar below it
-    makes the verdict invalid with a message naming the bar, the pose and conflict unchanged; the default (None)
-    is the matcher's raw-scan bar."""
-    from graffmatch.loops.verify import scan_pass
+    makes the verdict invalid with a message naming the bar, the pose and conflict unchanged; None is the
+    matcher's raw-scan bar (the matcher itself)."""
+    from graffmatch.loops.verify import _scan_pass_matcher, scan_pass
 
     det, _ = poor_db
     (a, b, _c), (sa, sb, _sc) = det.db.landmarks, det.db.extra["scan"]
     v = det.config.verification
-    assert v.scans_max_conflict is None
-    base = scan_pass(b, a, sb, sa, det.matcher, v)
+    assert _scan_pass_matcher(det.matcher, None) is det.matcher
+    assert _scan_pass_matcher(det.matcher, 0.12).config.verification.scans.max_conflict == 0.12
+    base = scan_pass(b, a, sb, sa, det.matcher, v.model_copy(update={"scans_max_conflict": None}))
     conflict = base["scan_conflict"]
     assert base["scan_valid"] and 0.0 < conflict < det.matcher.config.matcher.verification.scans.max_conflict
     above = scan_pass(b, a, sb, sa, det.matcher, v.model_copy(update={"scans_max_conflict": min(1.0, 2 * conflict)}))
@@ -157,6 +158,7 @@ def test_defaults_are_the_calibrated_scan_rule():
     assert (v.scans_screen_min_ratio, v.scans_skip_max, v.scans_points_min_agreeing, v.quick_order_radius) == (
         2.5, 2, 0, True)
     assert v.quick_order_odometry  # session 16b
+    assert v.scans_max_conflict == 0.12  # session 17
     assert LoopDetectorConfig().matcher.verification.point_hypotheses
     assert not GraffMatchConfig().verification.point_hypotheses
     assert ScanMatcherConfig().evidence == "support_then_scans"
