@@ -265,6 +265,16 @@ def replay_row(drives: list, cons: dict, cfg, base_v, order: bool, points: bool,
                     stress_quick_rejected_reached=n_screened)
 
 
+def write_grid(args, cfg, drives: list, t0: float, chosen: dict, grid: list, **extra) -> None:
+    """The grid's JSON (``--json``): the machine, the drives, the recording run's settings, the choice and every row."""
+    if args.json:
+        write_json(args.json, {
+            "machine": machine(), "wall_s": time.perf_counter() - t0, "drives": [d[0].name for d in drives],
+            "grid_kind": args.grid, "run_config_verification": cfg.verification.model_dump(mode="json"),
+            "run_config_matcher_verification": cfg.matcher.verification.model_dump(mode="json"), "chosen": chosen,
+            **extra, "grid": grid})
+
+
 def grid16(args, cfg, drives: list, t0: float) -> None:
     """Session 16's grid: the quick-check skip for cloud pairs behind the first screen (ratio s, at most
     m screened a query, nearest by the odometry first), scans_points_min_agreeing a, point hypotheses
@@ -280,9 +290,7 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
     filter over 14 drives, ratios up to 4; among the rows tied at the most recall session 16's shipped row
     (order on, ratio 3, cap 1, a 0) first, then the stricter as above."""
 
-    base_v = cfg.verification.model_copy(update={
-        "max_verified": DEFAULT_MAX_VERIFIED, "stop_when_accepted": True, "scan_cloud_below": K,
-        "scans_min_confidence": 0.99, "scans_min_agreeing": 3})
+    base_v = policy_base(cfg)
     cons = {}
     for ds, odo, _poses, recs, has, _ in drives:
         cache = (args.contrast_cache or args.out) / f"{ds.name}.contrast16.json"
@@ -314,18 +322,45 @@ def grid16(args, cfg, drives: list, t0: float) -> None:
     exception = {k: max(tied_on, key=strict)[k] for k in keys} if tied_on else None
     if best["scans_screen_min_ratio"] is None:
         print("the rule's exception (a tied screen row, stress >= 10 right / 0 wrong):", exception)
-    if args.json:
-        write_json(args.json, {
-            "machine": machine(), "wall_s": time.perf_counter() - t0, "drives": [d[0].name for d in drives],
-            "grid_kind": args.grid, "run_config_verification": cfg.verification.model_dump(mode="json"),
-            "run_config_matcher_verification": cfg.matcher.verification.model_dump(mode="json"), "chosen": chosen,
-            "exception_if_tied": exception, "grid": grid})
+    write_grid(args, cfg, drives, t0, chosen, grid, exception_if_tied=exception)
 
 
 #: Session 17: the scan pass's own free-space conflict bar (None: the matcher's raw-scan 0.08), with the screen's
 #: ratio and cap again (a scan pass that accepts more may break their tie).
 T17_GRID: list[float | None] = [None, 0.09, 0.10, 0.11, 0.12]
 SHIPPED_16B = {"scans_max_conflict": None, "scans_skip_max": 2, "scans_screen_min_ratio": 2.5}
+
+
+def policy_base(cfg):
+    """The replayed policy's fixed part (session 15's shipped budget, clouds below K, its scan rule); the grids vary
+    the rest."""
+    return cfg.verification.model_copy(update={
+        "max_verified": DEFAULT_MAX_VERIFIED, "stop_when_accepted": True, "scan_cloud_below": K,
+        "scans_min_confidence": 0.99, "scans_min_agreeing": 3})
+
+
+def screen_contrasts(args, cfg, drives: list) -> dict:
+    """Each drive's first-screen contrasts of its quick-rejected cloud pairs (:func:`contrasts`, cached)."""
+    return {ds.name: contrasts(args.out / ds.name / "ours", (args.contrast_cache or args.out) / f"{ds.name}.contrast16.json",
+                               recs, has, np.asarray(odo), cfg) for ds, odo, _p, recs, has, _ in drives}
+
+
+def rescanned(args, cfg, drives: list, t: float | None) -> list:
+    """``drives`` with every recorded scan pass of a cloud pair run again on this code at ``scans_max_conflict`` t
+    (:func:`rescans` with ``every``, cached next to the contrasts)."""
+    ct = cfg.model_copy(update={"verification": cfg.verification.model_copy(update={"scans_max_conflict": t})})
+    out = []
+    for ds, odo, poses, recs, has, secs in drives:
+        t1 = time.perf_counter()
+        cache = (args.contrast_cache or args.out) / f"{ds.name}.rescan17_{t if t is not None else 'matcher'}.json"
+        rs = rescans(args.out / ds.name / "ours", cache, recs, has, np.asarray(odo), ct, False, every=True)
+        recs_t = {q: {**r, "candidates": [{**c, **{k: x for k, x in rs.get((int(q), int(c["match"])), {}).items()
+                                                    if k not in ("query", "match")}} for c in r["candidates"]]}
+                  for q, r in recs.items()}
+        out.append((ds, odo, poses, recs_t, has, secs))
+        print(f"{ds.name}: t {t}: {len(rs)} scan passes of cloud pairs ({time.perf_counter() - t1:.0f} s), "
+              f"{sum(bool(x['scan_valid']) for x in rs.values())} valid", flush=True)
+    return out
 
 
 def grid17(args, cfg, drives: list, t0: float) -> None:
@@ -338,25 +373,11 @@ def grid17(args, cfg, drives: list, t0: float) -> None:
     the most summed e2e R@100%P; among tied rows the shipped one (t None, 2.5, cap 2) first, then the stricter (t None,
     then the lowest t; the higher ratio; the smaller cap). A changed default also needs downtown-s1 <= 20 ms a query at
     k = 5 (measured after, interleaved with the shipped code)."""
-    base_v = cfg.verification.model_copy(update={
-        "max_verified": DEFAULT_MAX_VERIFIED, "stop_when_accepted": True, "scan_cloud_below": K,
-        "scans_min_confidence": 0.99, "scans_min_agreeing": 3})
-    cons = {ds.name: contrasts(args.out / ds.name / "ours", (args.contrast_cache or args.out) / f"{ds.name}.contrast16.json",
-                               recs, has, np.asarray(odo), cfg) for ds, odo, _p, recs, has, _ in drives}
+    base_v = policy_base(cfg)
+    cons = screen_contrasts(args, cfg, drives)
     grid = []
     for t in T17_GRID:
-        ct = cfg.model_copy(update={"verification": cfg.verification.model_copy(update={"scans_max_conflict": t})})
-        drives_t = []
-        for ds, odo, poses, recs, has, secs in drives:
-            t1 = time.perf_counter()
-            cache = (args.contrast_cache or args.out) / f"{ds.name}.rescan17_{t if t is not None else 'matcher'}.json"
-            rs = rescans(args.out / ds.name / "ours", cache, recs, has, np.asarray(odo), ct, False, every=True)
-            recs_t = {q: {**r, "candidates": [{**c, **{k: x for k, x in rs.get((int(q), int(c["match"])), {}).items()
-                                                        if k not in ("query", "match")}} for c in r["candidates"]]}
-                      for q, r in recs.items()}
-            drives_t.append((ds, odo, poses, recs_t, has, secs))
-            print(f"{ds.name}: t {t}: {len(rs)} scan passes of cloud pairs ({time.perf_counter() - t1:.0f} s), "
-                  f"{sum(bool(x['scan_valid']) for x in rs.values())} valid", flush=True)
+        drives_t = rescanned(args, cfg, drives, t)
         for m in M16_GRID:
             for ratio in RATIO16_GRID:
                 g = replay_row(drives_t, cons, cfg, base_v, True, True, 0, True, m, ratio, True,
@@ -373,12 +394,7 @@ def grid17(args, cfg, drives: list, t0: float) -> None:
             "stress_scans_false")
     chosen = {k: best[k] for k in keys}
     print("chosen:", chosen)
-    if args.json:
-        write_json(args.json, {
-            "machine": machine(), "wall_s": time.perf_counter() - t0, "drives": [d[0].name for d in drives],
-            "grid_kind": args.grid, "run_config_verification": cfg.verification.model_dump(mode="json"),
-            "run_config_matcher_verification": cfg.matcher.verification.model_dump(mode="json"), "chosen": chosen,
-            "grid": grid})
+    write_grid(args, cfg, drives, t0, chosen, grid)
 
 
 def grid17m(args, cfg, drives: list, t0: float) -> None:
@@ -388,19 +404,9 @@ def grid17m(args, cfg, drives: list, t0: float) -> None:
     wrong scan-rule accept in the stress set."""
     from graffmatch.loops.verify import SCANS_SCREEN_MIN_RATIO, SCANS_SKIP_MAX
 
-    base_v = cfg.verification.model_copy(update={
-        "max_verified": DEFAULT_MAX_VERIFIED, "stop_when_accepted": True, "scan_cloud_below": K,
-        "scans_min_confidence": 0.99, "scans_min_agreeing": 3})
-    cons = {ds.name: contrasts(args.out / ds.name / "ours", (args.contrast_cache or args.out) / f"{ds.name}.contrast16.json",
-                               recs, has, np.asarray(odo), cfg) for ds, odo, _p, recs, has, _ in drives}
-    drives_t = []
-    for ds, odo, poses, recs, has, secs in drives:
-        cache = (args.contrast_cache or args.out) / f"{ds.name}.rescan17_matcher.json"
-        rs = rescans(args.out / ds.name / "ours", cache, recs, has, np.asarray(odo), cfg, False, every=True)
-        recs_t = {q: {**r, "candidates": [{**c, **{k: x for k, x in rs.get((int(q), int(c["match"])), {}).items()
-                                                    if k not in ("query", "match")}} for c in r["candidates"]]}
-                  for q, r in recs.items()}
-        drives_t.append((ds, odo, poses, recs_t, has, secs))
+    base_v = policy_base(cfg)
+    cons = screen_contrasts(args, cfg, drives)
+    drives_t = rescanned(args, cfg, drives, None)
     grid = []
     for margin in MARGINS:
         v = base_v.model_copy(update={"place_margin_m": margin})
@@ -414,11 +420,7 @@ def grid17m(args, cfg, drives: list, t0: float) -> None:
     best = min(ok, key=lambda g: g["place_margin_m"])
     chosen = {k: best[k] for k in ("place_margin_m", "sum_e2e_r100p", "stress_scans_true", "stress_scans_false")}
     print("chosen:", chosen)
-    if args.json:
-        write_json(args.json, {
-            "machine": machine(), "wall_s": time.perf_counter() - t0, "drives": [d[0].name for d in drives],
-            "grid_kind": args.grid, "run_config_verification": cfg.verification.model_dump(mode="json"),
-            "chosen": chosen, "grid": grid})
+    write_grid(args, cfg, drives, t0, chosen, grid)
 
 
 def main() -> None:
