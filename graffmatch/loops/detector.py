@@ -27,6 +27,7 @@ from graffmatch.loops.database import (
     with_evidence_points,
 )
 from graffmatch.loops.descriptor import DescriptorConfig, landmark_descriptor
+from graffmatch.loops.local_map import local_map_at
 from graffmatch.loops.plan import verify_query
 from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_check_many, quick_index
 from graffmatch.loops.retrieval import RetrievalConfig, eligible_count, make_retriever
@@ -170,7 +171,14 @@ class LoopDetector:
         self.timings["extract"].append(time.perf_counter() - t0)
         extra: dict[str, Any] = {"scan_context": sc} if sc is not None else {}
         extra["scan"] = stored_scan
-        q = self.db.add(ls, desc, timestamp, position, **extra)
+        q = self.db.add(ls, desc, timestamp, position, local=None, **extra)
+        v = self.config.matcher.verification
+        local = local_map_at(q, self.db.landmarks.__getitem__, self._pose_of, self.config.verification, v.voxel,
+                             v.max_points)
+        if local is not None:  # matched on its local map: its descriptor too (loops/local_map.py)
+            self.db.extra["local"][q] = local
+            self.db.descriptors[q] = landmark_descriptor(local, self.config.descriptor)
+        self.timings["extract"][-1] = time.perf_counter() - t0
         if self.config.verification.quick_check:  # per-scan precomputation, with the extraction
             t_q = time.perf_counter()
             self.quick_index(q)
@@ -224,6 +232,16 @@ class LoopDetector:
                           self.matcher, cfg.verification)
         return time.perf_counter() - t0
 
+    def _pose_of(self, i: int) -> NDArray | None:
+        return self._poses[i] if 0 <= i < len(self._poses) else None
+
+    def landmarks(self, i: int) -> LandmarkSet:
+        """The map scan i is matched on: its local map when it has one, else its stored landmarks."""
+        local = self.db.extra.get("local")
+        if local is not None and i < len(local) and local[i] is not None:
+            return local[i]
+        return self.db.landmarks[i]
+
     def scan_of(self, i: int) -> NDArray[np.float32] | None:
         """Scan i's stored scan cloud (None: it keeps none, or has ``scan_cloud_below`` landmarks or
         more: a database stored with a larger setting verifies as this config says)."""
@@ -238,7 +256,7 @@ class LoopDetector:
         if len(cache) < len(self.db):
             cache.extend([None] * (len(self.db) - len(cache)))
         if cache[i] is None:
-            cache[i] = quick_index(self.db.landmarks[i], self.config.quick)
+            cache[i] = quick_index(self.landmarks(i), self.config.quick)
         return cache[i]
 
     def _consistent(self, query: int, recs: list[dict]) -> list[dict]:
@@ -263,9 +281,8 @@ class LoopDetector:
         t2 = time.perf_counter()
         self.timings["retrieve"].append(t2 - t1)
         recs = verify_query(
-            query, list(zip(idx.tolist(), dist.tolist(), strict=True)), self.db.landmarks.__getitem__,
-            self.quick_index, self.matcher, self.config.verification, self.config.quick, self.scan_of,
-            lambda i: self._poses[i] if i < len(self._poses) else None,
+            query, list(zip(idx.tolist(), dist.tolist(), strict=True)), self.landmarks,
+            self.quick_index, self.matcher, self.config.verification, self.config.quick, self.scan_of, self._pose_of,
         )
         recs = self._consistent(query, recs)
         out = []

@@ -35,6 +35,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from graffmatch.atomic_files import write_bytes_atomic
 from graffmatch.datasets.base import Dataset
 from graffmatch.errors import InvalidInputError, MalformedFileError
 from graffmatch.evaluation.executors import make_executor
@@ -43,12 +44,15 @@ from graffmatch.loops.consistency import apply_sequence_consistency
 from graffmatch.loops.database import (
     POINT_QUANTUM_M,
     LandmarkDatabase,
+    landmarks_to_bytes,
     load_landmarks,
     load_scan_cloud,
     save_landmarks,
 )
+from graffmatch.loops.descriptor import landmark_descriptor
 from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig, warm_up_once
 from graffmatch.loops.io import loop_edges, write_g2o, write_loops_csv
+from graffmatch.loops.local_map import local_maps
 from graffmatch.loops.plan import verify_query
 from graffmatch.loops.quickcheck import QuickIndex, quick_index
 from graffmatch.loops.retrieval import eligible_count
@@ -56,6 +60,7 @@ from graffmatch.loops.verify import LoopClosure
 
 Progress = Callable[[str, int, int], None]
 LANDMARK_DIR = "landmarks"
+LOCAL_MAP_DIR = "local_maps"  # the local maps of landmark-poor scans (loops/local_map.py), rewritten every run
 QUERIES_FILE = "queries.jsonl"
 QUERIES_META = "queries.meta.json"
 
@@ -125,6 +130,7 @@ class _ScanCache:
         self.key: tuple[str, str] | None = None
         self.max_scans = max_scans
         self.landmarks: OrderedDict[int, Any] = OrderedDict()
+        self.local: OrderedDict[int, Any] = OrderedDict()
         self.quick: OrderedDict[int, QuickIndex] = OrderedDict()
         self.scans: OrderedDict[int, Any] = OrderedDict()
 
@@ -132,6 +138,7 @@ class _ScanCache:
         if key != self.key:
             self.key = key
             self.landmarks.clear()
+            self.local.clear()
             self.quick.clear()
             self.scans.clear()
 
@@ -153,20 +160,27 @@ def _verify_task(args: tuple) -> list[dict]:
     """Worker: verify a chunk of queries (kernels warmed up first, once a process); a record a query.
 
     ``args``: out_dir, database key, config JSON, the chunk's (query, candidates), whether to warm up
-    the point kernels, and the odometry poses of the chunk's scans ({scan: 4x4}, or None)."""
+    the point kernels, the odometry poses of the chunk's scans ({scan: 4x4}, or None), and the scans
+    matched on their local maps with those maps' key (``(frozenset(), "")`` without)."""
     out_dir, database_key, config_json, chunk, warm_points = args[:5]
     poses = args[5] if len(args) > 5 else None
+    local_ids, local_key = args[6] if len(args) > 6 else (frozenset(), "")
     config = LoopDetectorConfig.model_validate_json(config_json)
     det = LoopDetector(config)
-    _CACHE.reset((out_dir, database_key + config.quick.model_dump_json()))
+    _CACHE.reset((out_dir, database_key + config.quick.model_dump_json() + local_key))
     warm_s, warm_cpu_s = warm_up_once(det, warm_points)
     index_s = [0.0]
 
-    def lm(i: int):
+    def own(i: int):
         return _CACHE.get(_CACHE.landmarks, i, lambda: load_landmarks(Path(out_dir) / LANDMARK_DIR / f"{i:06d}.npz"))
 
+    def lm(i: int):  # the map scan i is matched on
+        if i not in local_ids:
+            return own(i)
+        return _CACHE.get(_CACHE.local, i, lambda: load_landmarks(Path(out_dir) / LOCAL_MAP_DIR / f"{i:06d}.npz"))
+
     def scan(i: int):
-        if not config.verification.keeps_scan_cloud(len(lm(i))):
+        if not config.verification.keeps_scan_cloud(len(own(i))):
             return None
         return _CACHE.get(_CACHE.scans, i, lambda: load_scan_cloud(Path(out_dir) / LANDMARK_DIR / f"{i:06d}.npz"))
 
@@ -347,13 +361,31 @@ def build_database(
         raise InvalidInputError(f"{getattr(dataset, 'name', 'dataset')}: timestamps decrease")
     for i in range(n):
         ls = load_landmarks(lm_dir / f"{i:06d}.npz")
-        from graffmatch.loops.descriptor import landmark_descriptor
-
         extra = {"scan": load_scan_cloud(lm_dir / f"{i:06d}.npz") if config.verification.scan_cloud_below > 0 else None}
         if config.retrieval.method == "scan-context":
             extra["scan_context"] = np.load(lm_dir / f"{i:06d}.sc.npy")
         db.add(ls, landmark_descriptor(ls, config.descriptor), float(times[i]), **extra)
     return db, stats
+
+
+def _write_local_maps(db: LandmarkDatabase, out: Path, config: LoopDetectorConfig,
+                      odometry: NDArray | None) -> tuple[frozenset[int], str]:
+    """Build the local maps of the drive's landmark-poor scans (needs odometry), write them for the
+    workers, and give those scans their local map's descriptor (the retriever reads the database's).
+    Returns the scans with a local map and a key of the maps' contents (workers' caches)."""
+    if odometry is None or config.verification.local_map_frames <= 0:
+        return frozenset(), ""
+    v = config.matcher.verification
+    maps = local_maps(db.landmarks.__getitem__, odometry, config.verification, v.voxel, v.max_points)
+    d = out / LOCAL_MAP_DIR
+    d.mkdir(parents=True, exist_ok=True)
+    h = hashlib.sha256()
+    for i, ls in sorted(maps.items()):
+        data = landmarks_to_bytes(ls)
+        write_bytes_atomic(d / f"{i:06d}.npz", data)
+        h.update(i.to_bytes(8, "little") + data)
+        db.descriptors[i] = landmark_descriptor(ls, config.descriptor)
+    return frozenset(maps), h.hexdigest()[:20]
 
 
 def run_loops(
@@ -397,6 +429,8 @@ def run_loops(
     elif config.retrieval.method == "radius":
         raise InvalidInputError("the radius retriever needs positions (poses or odometry)")
 
+    local_ids, local_key = _write_local_maps(db, out, config, odometry)
+
     # retrieval in the driver: fast, and it needs the whole database
     det = LoopDetector(config)
     det.db = db
@@ -439,7 +473,8 @@ def run_loops(
             try:
                 warm_points = sum(ls.points is not None for ls in db.landmarks) >= 2  # a pair on points
                 tasks = [(str(out), stats["database_key"], cfg_json, c, warm_points,
-                          None if odometry is None else _chunk_poses(odometry, c)) for c in chunks]
+                          None if odometry is None else _chunk_poses(odometry, c), (local_ids, local_key))
+                         for c in chunks]
                 for _, recs in ex.imap_unordered(_verify_task, tasks):
                     for rec in recs:
                         f.write(json.dumps(rec) + "\n")

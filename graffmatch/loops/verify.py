@@ -101,6 +101,12 @@ QUICK_ORDER_ODOMETRY = True
 #: (downtown 13-24 added, never used), 0.12 with the shipped screen has the most summed e2e R@100%P (23.754 -> 23.829,
 #: downtown 20), 0 wrong loops, 0 wrong of 542 right scan-rule accepts; 0.12 is the grid's upper edge.
 SCANS_MAX_CONFLICT: float | None = 0.12
+#: Local maps of landmark-poor scans (loops/local_map.py, session 18): a scan with fewer than
+#: LOCAL_MAP_BELOW own landmarks is matched on its landmarks merged with those of its LOCAL_MAP_FRAMES
+#: previous frames (moved by the odometry; needs odometry). 12 is the landmark-poor bar of the evidence
+#: points (EVIDENCE_POINTS_BELOW), fixed before the calibration; the frames are the calibration's choice.
+LOCAL_MAP_BELOW = 12
+LOCAL_MAP_FRAMES = 0
 
 
 class VerificationConfig(BaseModel):
@@ -228,6 +234,15 @@ class VerificationConfig(BaseModel):
         "stored voxel clouds, a sparser sample, whose right poses conflict on 8-13 % of their points (calibration "
         "drives, docs/loops.md session 17: 0.12); None: the matcher's",
     )
+    local_map_frames: int = Field(
+        LOCAL_MAP_FRAMES, ge=0, le=200,
+        description="with odometry: a scan with fewer than local_map_below own landmarks is matched (descriptor, quick "
+        "check, verification) on its local map, its landmarks and evidence points merged with those of this many "
+        "previous frames moved by the odometry (loops/local_map.py); 0: off",
+    )
+    local_map_below: int = Field(
+        LOCAL_MAP_BELOW, ge=0, description="own landmarks below which a scan is matched on its local map"
+    )
     quick_order_radius: bool = Field(
         QUICK_ORDER_RADIUS,
         description="with max_translation_m: verify the candidates whose quick estimate (at least "
@@ -312,6 +327,18 @@ def landmark_agreement(
     """(agreeing source landmarks, their fraction of min(n_source, n_target)) after T."""
     if len(source) == 0 or len(target) == 0:
         return 0, 0.0
+    agree = int(np.count_nonzero(agreeing_mask(source, target, T_target_source, config)))
+    return agree, agree / min(len(source), len(target))
+
+
+def agreeing_mask(
+    source: LandmarkSet, target: LandmarkSet, T_target_source: NDArray, config: VerificationConfig
+) -> NDArray[np.bool_]:
+    """Which source landmarks, moved by T, lie on a same-type landmark of ``target`` (the gates of
+    :func:`landmark_agreement`; also what makes two landmarks of a local map one)."""
+    out = np.zeros(len(source), bool)
+    if len(source) == 0 or len(target) == 0:
+        return out
     # only anchors and directions move (R d is the moved line direction / plane normal): no
     # transformed LandmarkSet (its bases, attributes and checks) is needed for the gates
     T = np.asarray(T_target_source, float)
@@ -319,7 +346,6 @@ def landmark_agreement(
     anchors_s = source.anchors @ R.T + t
     ds, dt = source.directions @ R.T, target.directions
     cos_gate = np.cos(np.radians(config.agree_deg))
-    agree = 0
     for kind in (LandmarkType.LINE, LandmarkType.PLANE, LandmarkType.POINT):
         i = np.flatnonzero(source.types == kind)
         j = np.flatnonzero(target.types == kind)
@@ -340,8 +366,8 @@ def landmark_agreement(
                 ok = (cosang > cos_gate) & (np.abs(along) < config.agree_m) & (
                     inplane < config.plane_anchor_m
                 )
-        agree += int(np.count_nonzero(ok.any(axis=1)))
-    return agree, agree / min(len(source), len(target))
+        out[i] = ok.any(axis=1)
+    return out
 
 
 def required_agreeing(matcher_confidence: float | None, config: VerificationConfig, on_points: bool = False) -> int:
