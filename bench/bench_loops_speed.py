@@ -80,6 +80,7 @@ def main() -> None:
     from graffmatch.loops.database import LandmarkDatabase, load_landmarks, load_scan_cloud
     from graffmatch.loops.descriptor import landmark_descriptor
     from graffmatch.loops.detector import LoopDetector
+    from graffmatch.loops.local_map import attach_local_maps
     from graffmatch.loops.quickcheck import quick_index
     from graffmatch.loops.retrieval import eligible_count
 
@@ -104,7 +105,6 @@ def main() -> None:
             ls = load_landmarks(f)
             # the scan cloud of a landmark-poor scan, when the run kept one (scan_cloud_below, session 15)
             db.add(ls, landmark_descriptor(ls, base.descriptor), float(stamps[i]), scan=load_scan_cloud(f))
-        db.extra["quick"] = [quick_index(ls, base.quick) for ls in db.landmarks]
         poses = None
         if args.odometry:
             odo = Path(args.odometry)
@@ -114,6 +114,11 @@ def main() -> None:
             if len(poses) != len(db):
                 raise SystemExit(f"{odo}: {len(poses)} poses for {len(db)} scans")
             db.positions = [p[:3, 3].copy() for p in poses]
+            # landmark-poor scans matched on their local maps, as run_loops does (untimed, like extraction)
+            v = base.matcher.verification
+            attach_local_maps(db, poses, base.verification, base.descriptor, v.voxel, v.max_points)
+        local = db.extra.get("local") or [None] * len(db)
+        db.extra["quick"] = [quick_index(ls if m is None else m, base.quick) for ls, m in zip(db.landmarks, local, strict=True)]
         for mode in args.modes:
             cfg = base.model_copy(deep=True)
             opts = MODES[mode]

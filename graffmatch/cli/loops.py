@@ -95,6 +95,15 @@ def loops(
         typer.Option(min=0, help="Scans with fewer landmarks also keep their scan cloud; pairs of two such scans "
                      "are verified again on it (raw-scan evidence; 0: none)."),
     ] = None,
+    local_map_frames: Annotated[
+        int | None,
+        typer.Option(min=0, max=200, help="Scans with fewer than --local-map-below landmarks are matched on their local "
+                     "map: their landmarks merged with those of this many previous frames, moved by the odometry "
+                     "(loaded when given; 0: off)."),
+    ] = None,
+    local_map_below: Annotated[
+        int | None, typer.Option(min=0, help="Own landmarks below which a scan is matched on its local map.")
+    ] = None,
     optimize: Annotated[bool, typer.Option(help="Pose graph with GTSAM; KITTI/TUM trajectories, ATE/RPE.")] = False,
     odometry: Annotated[
         str, typer.Option(help="Odometry for --optimize/radius: drift | gt | kiss-icp | PATH (KITTI poses).")
@@ -143,11 +152,15 @@ def loops(
         cfg.verification.evidence_points_below = evidence_points_below
     if scan_cloud_below is not None:
         cfg.verification.scan_cloud_below = scan_cloud_below
+    if local_map_frames is not None:
+        cfg.verification.local_map_frames = local_map_frames
+    if local_map_below is not None:
+        cfg.verification.local_map_below = local_map_below
     cfg.verification.quick_check = quick_check
     cfg.verification.stop_when_accepted = not all_loops
     cfg = LoopDetectorConfig.model_validate(cfg.model_dump())
     out_dir = output or run_dir(STATE.runs_dir, "loops")
-    need_odometry = optimize or deskew or use_odometry or retriever == Retriever.radius
+    need_odometry = optimize or deskew or use_odometry or retriever == Retriever.radius or bool(local_map_frames)
     ds, odo = prepare_drive(ds, odometry if need_odometry else None, deskew,
                             OdometryDriftConfig(yaw_bias_deg_per_100m=drift_yaw, seed=drift_seed))
     with make_progress() as progress:

@@ -171,12 +171,13 @@ class LoopDetector:
         self.timings["extract"].append(time.perf_counter() - t0)
         extra: dict[str, Any] = {"scan_context": sc} if sc is not None else {}
         extra["scan"] = stored_scan
-        q = self.db.add(ls, desc, timestamp, position, local=None, **extra)
+        extra["local"] = None
+        q = self.db.add(ls, desc, timestamp, position, **extra)
         v = self.config.matcher.verification
         local = local_map_at(q, self.db.landmarks.__getitem__, self._pose_of, self.config.verification, v.voxel,
                              v.max_points)
         if local is not None:  # matched on its local map: its descriptor too (loops/local_map.py)
-            self.db.extra["local"][q] = local
+            self.db.extra.setdefault("local", [None] * len(self.db))[q] = local
             self.db.descriptors[q] = landmark_descriptor(local, self.config.descriptor)
         self.timings["extract"][-1] = time.perf_counter() - t0
         if self.config.verification.quick_check:  # per-scan precomputation, with the extraction

@@ -20,12 +20,14 @@ from numpy.typing import NDArray
 
 from graffmatch.geometry.landmarks import LandmarkSet
 from graffmatch.loops.database import (
+    LandmarkDatabase,
     decode_landmarks,
     decode_points,
     encode_landmarks,
     encode_points,
     with_evidence_points,
 )
+from graffmatch.loops.descriptor import DescriptorConfig, landmark_descriptor
 from graffmatch.loops.verify import VerificationConfig, agreeing_mask
 from graffmatch.verification.evidence import voxel_downsample
 
@@ -111,3 +113,21 @@ def local_maps(
     P = np.asarray(odometry, np.float64)
     maps = {i: local_map_at(i, own_of, P.__getitem__, config, voxel, max_points) for i in range(len(P))}
     return {i: m for i, m in maps.items() if m is not None}
+
+
+def attach_local_maps(
+    db: LandmarkDatabase,
+    odometry: NDArray,
+    config: VerificationConfig,
+    descriptor: DescriptorConfig,
+    voxel: float,
+    max_points: int,
+) -> dict[int, LandmarkSet]:
+    """Build a whole database's local maps and attach them (``db.extra['local']``, read by
+    ``LoopDetector.landmarks``), each scan with one taking its local map's descriptor (the retriever
+    reads the database's). The database keeps the own tables. Returns the maps."""
+    maps = local_maps(db.landmarks.__getitem__, odometry, config, voxel, max_points)
+    db.extra["local"] = [maps.get(i) for i in range(len(db))]
+    for i, ls in maps.items():
+        db.descriptors[i] = landmark_descriptor(ls, descriptor)
+    return maps

@@ -52,7 +52,7 @@ from graffmatch.loops.database import (
 from graffmatch.loops.descriptor import landmark_descriptor
 from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig, warm_up_once
 from graffmatch.loops.io import loop_edges, write_g2o, write_loops_csv
-from graffmatch.loops.local_map import local_maps
+from graffmatch.loops.local_map import attach_local_maps
 from graffmatch.loops.plan import verify_query
 from graffmatch.loops.quickcheck import QuickIndex, quick_index
 from graffmatch.loops.retrieval import eligible_count
@@ -376,7 +376,7 @@ def _write_local_maps(db: LandmarkDatabase, out: Path, config: LoopDetectorConfi
     if odometry is None or config.verification.local_map_frames <= 0:
         return frozenset(), ""
     v = config.matcher.verification
-    maps = local_maps(db.landmarks.__getitem__, odometry, config.verification, v.voxel, v.max_points)
+    maps = attach_local_maps(db, odometry, config.verification, config.descriptor, v.voxel, v.max_points)
     d = out / LOCAL_MAP_DIR
     d.mkdir(parents=True, exist_ok=True)
     h = hashlib.sha256()
@@ -384,7 +384,6 @@ def _write_local_maps(db: LandmarkDatabase, out: Path, config: LoopDetectorConfi
         data = landmarks_to_bytes(ls)
         write_bytes_atomic(d / f"{i:06d}.npz", data)
         h.update(i.to_bytes(8, "little") + data)
-        db.descriptors[i] = landmark_descriptor(ls, config.descriptor)
     return frozenset(maps), h.hexdigest()[:20]
 
 
@@ -502,6 +501,7 @@ def run_loops(
         "n_candidates_retrieved": n_retrieved,
         "n_candidates_verified": n_verified,
         "n_loops_sequence_consistent": sum(lc.info.get("consistent_with") is not None for lc in loops),
+        "n_scans_on_local_maps": len(local_ids),
         "quick_index_cpu_s": sum(r.get("index_s", 0.0) for r in done.values()),
         "worker_warmup_cpu_s": sum(r.get("warmup_cpu_s", 0.0) for r in done.values()),  # numba kernels, not in queries
         "retrieval": config.retrieval.method,
