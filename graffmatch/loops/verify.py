@@ -103,11 +103,13 @@ QUICK_ORDER_ODOMETRY = True
 SCANS_MAX_CONFLICT: float | None = 0.12
 #: Local maps of landmark-poor scans (loops/local_map.py, session 18): with odometry, a scan with fewer than
 #: LOCAL_MAP_BELOW own landmarks is matched on its landmarks merged with those of its LOCAL_MAP_FRAMES previous
-#: frames, moved by the odometry. Of frames {0, 5, 10, 20} x below {8, 12} on the 26 calibration drives
-#: (bench/loops_calibration_local_maps.py, bench/results/loops_calibration_session18.json), 5 / 8 has the most
-#: summed e2e R@100%P (23.829 off -> 23.925; 10 / 8 ties, the fewer frames win) and no wrong loop, like every row.
+#: frames, moved by the odometry. Chosen on the 26 calibration drives (bench/loops_calibration_local_maps.py,
+#: bench/results/loops_calibration_session18{,b,c}.json): 5 frames below 8 had the most summed e2e R@100%P
+#: (23.829 off -> 23.925) but takes 20.4-20.5 ms a query at k = 5 (target 20), as do 10/8, 20/8, 5/12 and 5/6; the
+#: next row, 1 frame below 8 (23.842, 0 wrong loops), takes 19.4-19.8 ms (docs/loops.md session 18, step 2's rule).
+#: Doubtful: 2 and 3 frames accept wrong loops (1.0-1.5 m off along a facade) on one calibration drive.
 LOCAL_MAP_BELOW = 8
-LOCAL_MAP_FRAMES = 5
+LOCAL_MAP_FRAMES = 1
 
 
 class VerificationConfig(BaseModel):
