@@ -245,3 +245,21 @@ def test_run_loops_matches_on_local_maps_and_equals_the_online_detector(tmp_path
     for i in range(len(ds)):
         found += det.add(load_landmarks(out / "landmarks" / f"{i:06d}.npz"), timestamp=float(ds.timestamps[i]), pose=P[i])
     assert sorted((c.query, c.match) for c in found) == sorted((c.query, c.match) for c in loops)
+
+    # the CLI's opt-in flags reach the same run (the extraction cache copied; ground truth as the odometry)
+    import json
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from graffmatch.cli.main import app
+
+    cli_out = tmp_path / "cli"
+    shutil.copytree(out / "landmarks", cli_out / "landmarks")
+    res = CliRunner().invoke(app, ["-q", "loops", str(ds.root), "-o", str(cli_out), "--odometry", "gt",
+                                   "--local-map-frames", "4", "--local-map-below", "1000", "--exclude-seconds", "0",
+                                   "--exclude-frames", "30", "--workers", "1"])
+    assert res.exit_code == 0, res.output
+    s = json.loads((cli_out / "summary.json").read_text())
+    assert s["n_scans_on_local_maps"] == len(ds) and s["n_loops"] == summary["n_loops"]
+    assert "local_map_frames: 4" in (cli_out / "config.yaml").read_text()
