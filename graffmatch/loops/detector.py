@@ -177,7 +177,7 @@ class LoopDetector:
         local = local_map_at(q, self.db.landmarks.__getitem__, self._pose_of, self.config.verification, v.voxel,
                              v.max_points)
         if local is not None:  # matched on its local map: its descriptor too (loops/local_map.py)
-            self.db.extra.setdefault("local", [None] * len(self.db))[q] = local
+            self.db.extra["local"][q] = local  # the database.add above made the slot
             self.db.descriptors[q] = landmark_descriptor(local, self.config.descriptor)
         self.timings["extract"][-1] = time.perf_counter() - t0
         if self.config.verification.quick_check:  # per-scan precomputation, with the extraction
