@@ -202,6 +202,7 @@ class LoopDetector:
         from graffmatch.datasets.landmark_scene import make_scene_pair
         from graffmatch.geometry.transforms import invert
         from graffmatch.loops.database import decode_landmarks, encode_landmarks
+        from graffmatch.registration.closed_form import warm_up_exact
 
         t0 = time.perf_counter()
         cfg = self.config
@@ -210,6 +211,7 @@ class LoopDetector:
             out = decode_landmarks(encode_landmarks(ls))
             return with_evidence_points(out, None if P is None else decode_points(encode_points(P)))
 
+        warm_up_exact()  # the registration's exact path for rounding-fragile groups
         # landmark-poor, medium (the solver cuts subgraphs of its active set), rich with outliers,
         # and noise-free (the registration's exact fallback for rounding-fragile groups)
         for n_poles, n_planes, noise, outliers, seed in ((4, 6, 1.0, 0, 0), (9, 17, 1.0, 0, 3), (15, 30, 1.0, 12, 0),

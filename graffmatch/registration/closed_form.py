@@ -1368,6 +1368,17 @@ def _signs_exact(R: Array, ds: Array, dt: Array, is_dir: NDArray[np.bool_], dot_
     return s, ok
 
 
+def warm_up_exact() -> None:
+    """Load, or compile, the kernels of :func:`_solve_exactly`, which only a numerically fragile group
+    reaches (a noise-free scene no longer does reliably): a loop worker's warm-up calls this so that no
+    query's time holds their compilation (docs/loops.md, session 13)."""
+    ds = np.eye(3)
+    is_dir = np.ones(3, np.bool_)
+    R = np.ascontiguousarray(np.broadcast_to(np.eye(3), (4, 1, 3, 3)))
+    signs, _ok = _signs_exact(R, ds, ds, is_dir, _EXACT_DOT_MIN)
+    _correlation_exact(signs, np.ones(3), is_dir, ds, ds)
+
+
 def _write_group(out: BatchRegistration, sub: BatchRegistration, gi: int, rows: NDArray[np.int64]) -> None:
     """Group ``gi`` of ``out`` (and its associations ``rows``, input order) from a one-group result."""
     for name in ("T_target_source", "kappa", "kappa_rotation", "kappa_translation", "degenerate",
