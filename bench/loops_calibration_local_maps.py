@@ -94,6 +94,7 @@ def main() -> None:
     ap.add_argument("--below", type=int, nargs="+", default=[8, 12])
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--rule", default="docs/loops.md session 18", help="where the rule of this run is written")
     args = ap.parse_args()
     t0 = time.perf_counter()
     settings = [(0, args.below[0])] + [(f, b) for f in args.frames if f > 0 for b in args.below]
@@ -114,7 +115,7 @@ def main() -> None:
             print(f"  {name}: {a['e2e_r100p']:.3f} -> {b['e2e_r100p']:.3f} ({b['positives']} positives)")
     if args.json:
         write_json(args.json, {"machine": machine(), "wall_s": time.perf_counter() - t0,
-                               "rule": "docs/loops.md session 18", "chosen": {k: chosen[k] for k in
+                               "rule": args.rule, "chosen": {k: chosen[k] for k in
                                                                              ("local_map_frames", "local_map_below")},
                                "grid": grid})
 

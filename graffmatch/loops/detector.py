@@ -286,6 +286,7 @@ class LoopDetector:
         recs = verify_query(
             query, list(zip(idx.tolist(), dist.tolist(), strict=True)), self.landmarks,
             self.quick_index, self.matcher, self.config.verification, self.config.quick, self.scan_of, self._pose_of,
+            self.db.landmarks.__getitem__,
         )
         recs = self._consistent(query, recs)
         out = []

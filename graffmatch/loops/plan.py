@@ -105,6 +105,18 @@ def run_plan(order: list[dict], extra: list[dict], config: VerificationConfig, v
             break
 
 
+def pair_maps(query: int, match: int, landmarks_of: Callable[[int], LandmarkSet],
+              own_of: Callable[[int], LandmarkSet] | None, config: VerificationConfig) -> tuple[LandmarkSet, LandmarkSet]:
+    """The two maps a pair is verified on: ``landmarks_of`` (local maps where a scan has one), or both scans' own
+    maps when ``local_map_on_points_only`` and a map lacks evidence points. Why: verified on landmarks alone, local
+    maps accepted loops 3-8 m off along the real courtyard's walls (merged facade fragments each agree under a slid
+    pose); verified on points, none (docs/loops.md, session 19)."""
+    a, b = landmarks_of(query), landmarks_of(match)
+    if own_of is not None and config.local_map_on_points_only and (a.points is None or b.points is None):
+        return own_of(query), own_of(match)
+    return a, b
+
+
 def verify_query(
     query: int,
     candidates: list[tuple[int, float]],
@@ -115,6 +127,7 @@ def verify_query(
     quick_config: QuickCheckConfig | None = None,
     scan_of: Callable[[int], NDArray | None] | None = None,
     odometry_of: Callable[[int], NDArray | None] | None = None,
+    own_of: Callable[[int], LandmarkSet] | None = None,
 ) -> list[dict]:
     """Pre-screen and verify the retrieved candidates of one query; one record a candidate.
 
@@ -129,7 +142,9 @@ def verify_query(
     ``scans_skip_quick_check`` it is verified even when the quick check rejected it (after the
     passing candidates; :func:`verification_plan`). ``odometry_of(i)``: scan i's odometry pose (world
     <- scan, drift allowed) or None: with ``scans_screen_min_ratio`` the quick-rejected cloud pairs go
-    through the first screen at the odometry's relative pose (:func:`screens_in`).
+    through the first screen at the odometry's relative pose (:func:`screens_in`). ``own_of(i)``: scan i's own
+    landmarks when ``landmarks_of`` gives local maps: with ``local_map_on_points_only`` a pair of which a map lacks
+    evidence points is verified on the two own maps instead (:func:`pair_maps`).
     """
     recs: list[dict] = []
     for rank, (j, dist) in enumerate(candidates):
@@ -163,14 +178,14 @@ def verify_query(
 
     def screen(rec: dict) -> bool:
         t0 = time.perf_counter()
-        c = prior_contrast_of(qscan, scan[rec["match"]], landmarks_of(query), landmarks_of(rec["match"]),
+        c = prior_contrast_of(qscan, scan[rec["match"]], *pair_maps(query, rec["match"], landmarks_of, own_of, config),
                               T_odo[rec["match"]], matcher)
         dt = time.perf_counter() - t0
         rec.update(screen_prior=c[0], screen_turned=c[1], screen_seconds=dt, seconds=rec["seconds"] + dt)
         return screens_in(c, config)
 
     def verify(rec: dict) -> float:
-        v = verify_candidate(landmarks_of(query), landmarks_of(rec["match"]), matcher, config,
+        v = verify_candidate(*pair_maps(query, rec["match"], landmarks_of, own_of, config), matcher, config,
                              qscan, scan[rec["match"]])
         T = v["T_match_query"]
         rec.update(

@@ -203,7 +203,7 @@ def _verify_task(args: tuple) -> list[dict]:
         t0, c0 = time.perf_counter(), time.process_time()
         recs = verify_query(q, cands, lm, qi, det.matcher, config.verification, config.quick,
                             scan if config.verification.scan_cloud_below > 0 else None,
-                            None if poses is None else poses.get)
+                            None if poses is None else poses.get, own)
         records.append({"query": int(q), "candidates": recs, "verify_s": time.perf_counter() - t0, "verify_cpu_s": time.process_time() - c0})
     if records:
         records[-1]["index_s"] = index_s[0]

@@ -101,17 +101,15 @@ QUICK_ORDER_ODOMETRY = True
 #: (downtown 13-24 added, never used), 0.12 with the shipped screen has the most summed e2e R@100%P (23.754 -> 23.829,
 #: downtown 20), 0 wrong loops, 0 wrong of 542 right scan-rule accepts; 0.12 is the grid's upper edge.
 SCANS_MAX_CONFLICT: float | None = 0.12
-#: Local maps of landmark-poor scans (loops/local_map.py, session 18): with odometry, a scan with fewer than
-#: LOCAL_MAP_BELOW own landmarks is matched on its landmarks merged with those of its LOCAL_MAP_FRAMES previous
-#: frames, moved by the odometry. Chosen on the 26 calibration drives (bench/loops_calibration_local_maps.py,
-#: bench/results/loops_calibration_session18{,b,c}.json): 5 frames below 8 had the most summed e2e R@100%P
-#: (23.829 off -> 23.925) but takes 20.4-20.5 ms a query at k = 5 (target 20), as do 10/8, 20/8, 5/12 and 5/6; the
-#: next row, 1 frame below 8 (23.842, 0 wrong loops), takes 19.4-19.8 ms (docs/loops.md session 18, step 2's rule).
-#: Not on by default: 2 and 3 frames accept wrong loops (1.0-1.5 m off along a facade) on one calibration drive, and on
-#: the real balm_courtyard local maps (applied to its 8-15-landmark scans) accept loops 3-8 m off along its walls: the
-#: merged facade fragments inflate the landmark agreement. Opt-in (--local-map-frames) until that is fixed.
+#: Local maps of landmark-poor scans (loops/local_map.py, sessions 18-19; docs/loops.md): with odometry, a scan with
+#: fewer than LOCAL_MAP_BELOW own landmarks is matched on its landmarks merged with those of its LOCAL_MAP_FRAMES
+#: previous frames, moved by the odometry. Off by default until a setting passes the calibration drives, the 20 ms
+#: query target and the real courtyard (session 18: verified on landmarks alone, local maps accepted loops 3-8 m off
+#: along the courtyard's walls, merged facade fragments each agreeing under a slid pose; verified on points, none:
+#: hence LOCAL_MAP_ON_POINTS_ONLY, a pair is verified on local maps only when both carry evidence points).
 LOCAL_MAP_BELOW = 8
 LOCAL_MAP_FRAMES = 0
+LOCAL_MAP_ON_POINTS_ONLY = True
 
 
 class VerificationConfig(BaseModel):
@@ -247,6 +245,10 @@ class VerificationConfig(BaseModel):
     )
     local_map_below: int = Field(
         LOCAL_MAP_BELOW, ge=0, description="own landmarks below which a scan is matched on its local map"
+    )
+    local_map_on_points_only: bool = Field(
+        LOCAL_MAP_ON_POINTS_ONLY, description="verify a pair on its local maps only when both carry evidence points "
+        "(else on the scans' own landmarks): on landmarks alone merged facade fragments inflate the agreement"
     )
     quick_order_radius: bool = Field(
         QUICK_ORDER_RADIUS,
