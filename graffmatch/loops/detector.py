@@ -262,6 +262,19 @@ class LoopDetector:
             cache[i] = quick_index(self.landmarks(i), self.config.quick)
         return cache[i]
 
+    def own_quick_index(self, i: int) -> QuickIndex:
+        """The quick-check index of scan i's own landmarks (its local map's is :meth:`quick_index`): a pair
+        verified on the own maps is screened on them (``plan.on_own_maps``)."""
+        local = self.db.extra.get("local")
+        if local is None or i >= len(local) or local[i] is None:
+            return self.quick_index(i)
+        cache = self.db.extra.setdefault("own_quick", [])
+        if len(cache) < len(self.db):
+            cache.extend([None] * (len(self.db) - len(cache)))
+        if cache[i] is None:
+            cache[i] = quick_index(self.db.landmarks[i], self.config.quick)
+        return cache[i]
+
     def _consistent(self, query: int, recs: list[dict]) -> list[dict]:
         """The query's records with its weak loops that an earlier query's loop confirms."""
         W = self.config.verification.consistency_window
@@ -286,7 +299,7 @@ class LoopDetector:
         recs = verify_query(
             query, list(zip(idx.tolist(), dist.tolist(), strict=True)), self.landmarks,
             self.quick_index, self.matcher, self.config.verification, self.config.quick, self.scan_of, self._pose_of,
-            self.db.landmarks.__getitem__,
+            self.db.landmarks.__getitem__, self.own_quick_index,
         )
         recs = self._consistent(query, recs)
         out = []

@@ -105,15 +105,21 @@ def run_plan(order: list[dict], extra: list[dict], config: VerificationConfig, v
             break
 
 
+def on_own_maps(a: LandmarkSet, b: LandmarkSet, own_of: Callable[[int], LandmarkSet] | None,
+                config: VerificationConfig) -> bool:
+    """Whether a pair whose maps (local where a scan has one) are ``a`` and ``b`` is screened and verified on the
+    two scans' own maps instead: with ``local_map_on_points_only``, when a map lacks evidence points. Why: verified
+    on landmarks alone, local maps accepted loops 3-8 m off along the real courtyard's walls (merged facade
+    fragments each agree under a slid pose); verified on points, none (docs/loops.md, session 19)."""
+    return own_of is not None and config.local_map_on_points_only and (a.points is None or b.points is None)
+
+
 def pair_maps(query: int, match: int, landmarks_of: Callable[[int], LandmarkSet],
               own_of: Callable[[int], LandmarkSet] | None, config: VerificationConfig) -> tuple[LandmarkSet, LandmarkSet]:
-    """The two maps a pair is verified on: ``landmarks_of`` (local maps where a scan has one), or both scans' own
-    maps when ``local_map_on_points_only`` and a map lacks evidence points. Why: verified on landmarks alone, local
-    maps accepted loops 3-8 m off along the real courtyard's walls (merged facade fragments each agree under a slid
-    pose); verified on points, none (docs/loops.md, session 19)."""
+    """The two maps a pair is quick-checked and verified on (:func:`on_own_maps`)."""
     a, b = landmarks_of(query), landmarks_of(match)
-    if own_of is not None and config.local_map_on_points_only and (a.points is None or b.points is None):
-        return own_of(query), own_of(match)
+    if on_own_maps(a, b, own_of, config):
+        return own_of(query), own_of(match)  # type: ignore[misc]
     return a, b
 
 
@@ -128,6 +134,7 @@ def verify_query(
     scan_of: Callable[[int], NDArray | None] | None = None,
     odometry_of: Callable[[int], NDArray | None] | None = None,
     own_of: Callable[[int], LandmarkSet] | None = None,
+    own_quick_of: Callable[[int], QuickIndex] | None = None,
 ) -> list[dict]:
     """Pre-screen and verify the retrieved candidates of one query; one record a candidate.
 
@@ -144,7 +151,8 @@ def verify_query(
     <- scan, drift allowed) or None: with ``scans_screen_min_ratio`` the quick-rejected cloud pairs go
     through the first screen at the odometry's relative pose (:func:`screens_in`). ``own_of(i)``: scan i's own
     landmarks when ``landmarks_of`` gives local maps: with ``local_map_on_points_only`` a pair of which a map lacks
-    evidence points is verified on the two own maps instead (:func:`pair_maps`).
+    evidence points is quick-checked (``own_quick_of``: the own maps' indices) and verified on the two own maps
+    instead (:func:`pair_maps`), so the pre-screen reads the maps the verifier reads.
     """
     recs: list[dict] = []
     for rank, (j, dist) in enumerate(candidates):
@@ -155,15 +163,25 @@ def verify_query(
         })
     if config.quick_check and quick_of is not None and recs:
         t0 = time.perf_counter()
-        qi = quick_of(query)
-        cis = [quick_of(r["match"]) for r in recs]
-        scores, est = quick_check_many(qi, cis, quick_config)
+        q_ls = landmarks_of(query)
+        own = [on_own_maps(q_ls, landmarks_of(r["match"]), own_of, config) for r in recs]
+        for fallback in (False, True):  # one compiled pass a kind of map (own maps: only with local maps)
+            group = [r for r, o in zip(recs, own, strict=True) if o == fallback]
+            if not group:
+                continue
+            index_of = (own_quick_of or quick_of) if fallback else quick_of
+            qi = index_of(query)
+            cis = [index_of(r["match"]) for r in group]
+            scores, est = quick_check_many(qi, cis, quick_config)
+            for rec, ci, score, e in zip(group, cis, scores.tolist(), est, strict=True):
+                frac = score / max(1, min(qi.size, ci.size))
+                rec.update(quick_score=score, quick_fraction=float(frac), quick_translation_m=float(np.hypot(e[1], e[2])))
+                rec["quick_pass"] = quick_gate(score, frac, rec["quick_translation_m"], config)
+                if fallback and (own_of(query) is not q_ls or own_of(rec["match"]) is not landmarks_of(rec["match"])):  # type: ignore[misc]
+                    rec["own_maps"] = True  # a local map was set aside
         share = (time.perf_counter() - t0) / len(recs)
-        for rec, ci, score, e in zip(recs, cis, scores.tolist(), est, strict=True):
-            frac = score / max(1, min(qi.size, ci.size))
-            rec.update(quick_score=score, quick_fraction=float(frac),
-                       quick_translation_m=float(np.hypot(e[1], e[2])), seconds=share)
-            rec["quick_pass"] = quick_gate(score, frac, rec["quick_translation_m"], config)
+        for rec in recs:
+            rec["seconds"] = share
     qscan = None if scan_of is None else scan_of(query)
     scan = {r["match"]: (None if qscan is None else scan_of(r["match"])) for r in recs}  # type: ignore[misc]
     qpose = None if odometry_of is None else odometry_of(query)

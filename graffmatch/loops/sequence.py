@@ -132,6 +132,7 @@ class _ScanCache:
         self.landmarks: OrderedDict[int, Any] = OrderedDict()
         self.local: OrderedDict[int, Any] = OrderedDict()
         self.quick: OrderedDict[int, QuickIndex] = OrderedDict()
+        self.own_quick: OrderedDict[int, QuickIndex] = OrderedDict()  # own maps' of scans with a local map
         self.scans: OrderedDict[int, Any] = OrderedDict()
 
     def reset(self, key: tuple[str, str]) -> None:
@@ -140,6 +141,7 @@ class _ScanCache:
             self.landmarks.clear()
             self.local.clear()
             self.quick.clear()
+            self.own_quick.clear()
             self.scans.clear()
 
     def get(self, store: OrderedDict, i: int, make: Callable[[], Any]) -> Any:
@@ -192,6 +194,15 @@ def _verify_task(args: tuple) -> list[dict]:
             index_s[0] += time.perf_counter() - t
         return v
 
+    def own_qi(i: int) -> QuickIndex:  # a pair verified on the own maps is screened on them (plan.on_own_maps)
+        if i not in local_ids:
+            return qi(i)
+        t, hit = time.perf_counter(), i in _CACHE.own_quick
+        v = _CACHE.get(_CACHE.own_quick, i, lambda: quick_index(own(i), config.quick))
+        if not hit:
+            index_s[0] += time.perf_counter() - t
+        return v
+
     records = []
     for q, cands in chunk:
         for j in [q, *(c for c, _ in cands)]:  # load and index before the query's clock starts
@@ -203,7 +214,7 @@ def _verify_task(args: tuple) -> list[dict]:
         t0, c0 = time.perf_counter(), time.process_time()
         recs = verify_query(q, cands, lm, qi, det.matcher, config.verification, config.quick,
                             scan if config.verification.scan_cloud_below > 0 else None,
-                            None if poses is None else poses.get, own)
+                            None if poses is None else poses.get, own, own_qi)
         records.append({"query": int(q), "candidates": recs, "verify_s": time.perf_counter() - t0, "verify_cpu_s": time.process_time() - c0})
     if records:
         records[-1]["index_s"] = index_s[0]

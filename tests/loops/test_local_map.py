@@ -263,3 +263,47 @@ def test_run_loops_matches_on_local_maps_and_equals_the_online_detector(tmp_path
     s = json.loads((cli_out / "summary.json").read_text())
     assert s["n_scans_on_local_maps"] == len(ds) and s["n_loops"] == summary["n_loops"]
     assert "local_map_frames: 4" in (cli_out / "config.yaml").read_text()
+
+
+def test_real_courtyard_pairs_without_evidence_points_are_verified_on_the_own_maps(shared_data) -> None:
+    """balm_courtyard (real): three pairs whose 1-frame local maps (ground-truth poses, every scan on a local
+    map) carry no evidence points and were accepted 2.9-6.5 m off along the yard's walls (docs/loops.md, sessions
+    18-19). ``pair_maps`` verifies them on the scans' own maps instead: none is then accepted off by more than
+    1 deg / 0.2 m, while both maps carrying points keeps the local maps."""
+    from graffmatch.datasets.folder import KittiFolder
+    from graffmatch.geometry.transforms import rotation_error_deg
+    from graffmatch.loops.database import with_evidence_points
+    from graffmatch.loops.plan import pair_maps
+    from graffmatch.loops.verify import verify_candidate
+
+    court = shared_data / "balm_courtyard"
+    if not court.is_dir():
+        pytest.skip(f"no courtyard scans under {court}")
+    ds = KittiFolder(court)
+    P = np.asarray(ds.poses)
+    det = LoopDetector(LoopDetectorConfig())
+    v = det.config.verification.model_copy(update={"local_map_frames": 1, "local_map_below": 16})
+    mv = det.config.matcher.verification
+    own: dict[int, LandmarkSet] = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for i in (13, 14, 28, 29, 48, 49, 56, 57, 70, 71, 77, 78):
+            own[i] = det.prepare(det.scan_matcher.extract(ds[i].points))[0].without_points()
+    wrong_on_local = 0
+    for q, m in ((29, 14), (71, 57), (78, 49)):
+        local = {i: local_map_at(i, own.__getitem__, P.__getitem__, v, mv.voxel, mv.max_points) for i in (q, m)}
+        T_true = np.linalg.solve(P[m], P[q])
+        for on_local, (a, b) in ((True, (local[q], local[m])),
+                                 (False, pair_maps(q, m, local.__getitem__, own.__getitem__, v))):
+            assert (a is local[q]) == on_local and (b is local[m]) == on_local
+            r = verify_candidate(a, b, det.matcher, v)
+            if r["confidence"] < v.min_confidence:
+                continue
+            T = r["T_match_query"]
+            off = (rotation_error_deg(T[:3, :3], T_true[:3, :3]) > 1.0) or (np.linalg.norm(T[:3, 3] - T_true[:3, 3]) > 0.2)
+            wrong_on_local += on_local and off
+            assert on_local or not off, (q, m)
+    assert wrong_on_local >= 2  # the hazard the rule removes is real on these scans
+    pts = np.zeros((10, 3), np.float32)
+    a, b = (with_evidence_points(own[i], pts) for i in (29, 14))
+    assert pair_maps(29, 14, {29: a, 14: b}.__getitem__, own.__getitem__, v) == (a, b)
