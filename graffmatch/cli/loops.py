@@ -99,7 +99,8 @@ def loops(
         int | None,
         typer.Option(min=0, max=200, help="Scans with fewer than --local-map-below landmarks are matched on their local "
                      "map: their landmarks merged with those of this many previous frames, moved by the odometry "
-                     "(loaded when given; 0: off)."),
+                     "(giving it loads the odometry; 0: off). Default 5 frames below 6 landmarks whenever odometry is loaded; a frame "
+                     "joins only when its points land on the map's."),
     ] = None,
     local_map_below: Annotated[
         int | None, typer.Option(min=0, help="Own landmarks below which a scan is matched on its local map.")

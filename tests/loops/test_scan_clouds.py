@@ -159,7 +159,7 @@ def test_defaults_are_the_calibrated_scan_rule():
         2.5, 2, 0, True)
     assert v.quick_order_odometry  # session 16b
     assert v.scans_max_conflict == 0.12  # session 17
-    assert (v.local_map_frames, v.local_map_below) == (0, 8)  # session 18: opt-in (docs/loops.md)
+    assert (v.local_map_frames, v.local_map_below, v.local_map_on_points_only) == (5, 6, True)  # session 19
     assert LoopDetectorConfig().matcher.verification.point_hypotheses
     assert not GraffMatchConfig().verification.point_hypotheses
     assert ScanMatcherConfig().evidence == "support_then_scans"
