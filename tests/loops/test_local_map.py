@@ -14,10 +14,17 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from graffmatch.geometry.landmarks import Landmark, LandmarkSet, LandmarkType
-from graffmatch.geometry.transforms import invert
+from graffmatch.geometry.transforms import invert, rotation_error_deg
 from graffmatch.loops import LoopDetector, LoopDetectorConfig
+from graffmatch.loops.database import with_evidence_points
 from graffmatch.loops.local_map import local_map_at, local_maps, needs_local_map
-from graffmatch.loops.verify import VerificationConfig, agreeing_mask, landmark_agreement
+from graffmatch.loops.plan import pair_maps
+from graffmatch.loops.verify import (
+    VerificationConfig,
+    agreeing_mask,
+    landmark_agreement,
+    verify_candidate,
+)
 
 VOXEL, MAX_POINTS = 0.3, 1500
 
@@ -75,6 +82,17 @@ def _frames(world: list[Landmark], P: np.ndarray, reach: float = 30.0, points: b
                              validate=False)
         out.append(ls)
     return out
+
+
+def _courtyard(shared_data):
+    """balm_courtyard's scans, ground-truth poses and a detector (skipped when the data is absent)."""
+    from graffmatch.datasets.folder import KittiFolder
+
+    court = shared_data / "balm_courtyard"
+    if not court.is_dir():
+        pytest.skip(f"no courtyard scans under {court}")
+    ds = KittiFolder(court)
+    return ds, np.asarray(ds.poses), LoopDetector(LoopDetectorConfig())
 
 
 def _config(frames: int = 5, below: int = 100) -> VerificationConfig:
@@ -220,17 +238,7 @@ def test_real_courtyard_local_maps_of_landmark_poor_cuts_accept_no_wrong_pose(sh
     landmarks (keeping its evidence points) and matched on local maps of 5 frames (ground-truth poses as the odometry): the maps
     hold more landmarks than the cuts, and no pair across the walk, near or far, is accepted with a
     pose off by more than 2 deg / 0.5 m (a wrong loop bends a map; ambiguity must stay invalid)."""
-    from graffmatch.datasets.folder import KittiFolder
-    from graffmatch.geometry.transforms import rotation_error_deg
-    from graffmatch.loops.database import with_evidence_points
-    from graffmatch.loops.verify import verify_candidate
-
-    court = shared_data / "balm_courtyard"
-    if not court.is_dir():
-        pytest.skip(f"no courtyard scans under {court}")
-    ds = KittiFolder(court)
-    P = np.asarray(ds.poses)
-    det = LoopDetector(LoopDetectorConfig())
+    ds, P, det = _courtyard(shared_data)
     idx = list(range(0, 21)) + list(range(35, 46)) + list(range(55, 66))
     cuts: dict[int, LandmarkSet] = {}
     with warnings.catch_warnings():
@@ -316,18 +324,7 @@ def test_real_courtyard_pairs_without_evidence_points_are_verified_on_the_own_ma
     A query's local map (its evidence points kept, ground-truth poses) meeting a candidate without points is
     verified on the two own maps (``pair_maps``), and then none is accepted off by more than 1 deg / 0.2 m; with
     points on both sides the local maps are used."""
-    from graffmatch.datasets.folder import KittiFolder
-    from graffmatch.geometry.transforms import rotation_error_deg
-    from graffmatch.loops.database import with_evidence_points
-    from graffmatch.loops.plan import pair_maps
-    from graffmatch.loops.verify import verify_candidate
-
-    court = shared_data / "balm_courtyard"
-    if not court.is_dir():
-        pytest.skip(f"no courtyard scans under {court}")
-    ds = KittiFolder(court)
-    P = np.asarray(ds.poses)
-    det = LoopDetector(LoopDetectorConfig())
+    ds, P, det = _courtyard(shared_data)
     v = det.config.verification.model_copy(update={"local_map_frames": 1, "local_map_below": 16})
     mv = det.config.matcher.verification
     own: dict[int, LandmarkSet] = {}
