@@ -9,6 +9,11 @@ q -> m -> m' -> q' (the two loops and the odometry's motion m -> m') must give t
 pose within ``consistency_max_m`` / ``consistency_max_deg``. Only short odometry segments enter
 (q -> q', m -> m'), so a drifting odometry suffices. Two independent verifications of different
 scans rarely agree on a wrong place by chance. Without odometry nothing changes.
+
+With every candidate verified (``--all-loops``) a query can have several loops; each says where the query was (the
+match's odometry pose times the loop). A loop whose place disagrees with more of the query's other loops than agree
+with it (beyond the odometry's drift between the two matches: ``OUTVOTE_M`` + ``OUTVOTE_PATH_FRACTION`` of the path, and
+``OUTVOTE_DEG`` + ``OUTVOTE_DEG_PER_M`` of it) is dropped (:func:`drop_outvoted_loops`).
 """
 
 from __future__ import annotations
@@ -41,10 +46,59 @@ def _base_confidence(c: dict, config: VerificationConfig, relaxed: VerificationC
     )
 
 
+#: The drift allowed between two matches' odometry poses when a query's loops are compared: the radius retriever's
+#: 5 m + 2 % of the path (calibrated, bench/loops_calibration_union.py) and the drift model's 3 deg / 100 m over 10 deg.
+#: Not tuned: on the every-candidate stress sets of downtown 4, downtown-s1 and downtown-s5 (3,701 right accepted loops,
+#: 1 wrong: downtown 4's 345 -> 11, 117 m and 91 deg off) it drops the wrong one and no right one (docs/loops.md s. 19).
+OUTVOTE_M = 5.0
+OUTVOTE_PATH_FRACTION = 0.02
+OUTVOTE_DEG = 10.0
+OUTVOTE_DEG_PER_M = 0.03
+
+
+def drop_outvoted_loops(records: dict[int, dict], odometry: NDArray | None, min_confidence: float) -> dict[int, dict]:
+    """Records in which a query's accepted loop that more of its other accepted loops contradict than confirm (through
+    the odometry, within the drift allowance above) has confidence 0 and ``outvoted_by`` (the contradicting matches).
+    One loop a query (the default early stop) and ties change nothing. The records are not modified in place."""
+    if odometry is None:
+        return records
+    P = np.asarray(odometry, float)
+    if P.ndim != 3 or P.shape[1:] != (4, 4):
+        raise InvalidInputError(f"odometry must be (n, 4, 4) poses, got shape {P.shape}")
+    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1))])
+    out = dict(records)
+    for q, r in records.items():
+        acc = [k for k, c in enumerate(r["candidates"]) if c.get("T") is not None and c["confidence"] >= min_confidence]
+        if len(acc) < 3:
+            continue
+        if max(int(r["candidates"][k]["match"]) for k in acc) >= len(P):
+            raise InvalidInputError(f"odometry has {len(P)} poses; the loops of query {q} reach beyond it")
+        place = {k: P[int(r["candidates"][k]["match"])] @ np.asarray(r["candidates"][k]["T"], float).reshape(4, 4)
+                 for k in acc}
+        for k in acc:
+            m = int(r["candidates"][k]["match"])
+            against = []
+            for k2 in acc:
+                if k2 == k:
+                    continue
+                m2 = int(r["candidates"][k2]["match"])
+                along = abs(path[m] - path[m2])
+                E = invert(place[k]) @ place[k2]
+                deg = np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+                if np.linalg.norm(E[:3, 3]) > OUTVOTE_M + OUTVOTE_PATH_FRACTION * along or deg > OUTVOTE_DEG + OUTVOTE_DEG_PER_M * along:
+                    against.append(m2)
+            if len(against) > len(acc) - 1 - len(against):
+                if out[q] is records[q]:
+                    out[q] = {**records[q], "candidates": list(records[q]["candidates"])}
+                out[q]["candidates"][k] = {**r["candidates"][k], "confidence": 0.0, "outvoted_by": against}
+    return out if any(out[q] is not records[q] for q in records) else records
+
+
 def apply_sequence_consistency(
     records: dict[int, dict], odometry: NDArray | None, config: VerificationConfig
 ) -> dict[int, dict]:
-    """Records with the weak loops that a neighbouring query's loop confirms accepted.
+    """Records with the weak loops that a neighbouring query's loop confirms accepted, then the loops their query's
+    other loops outvote dropped (:func:`drop_outvoted_loops`).
 
     ``records``: query -> record (``queries.jsonl``), candidates as :func:`verify_query` wrote
     them; only verified ones count. A candidate is weak when its confidence is below
@@ -52,6 +106,11 @@ def apply_sequence_consistency(
     pair verified on points. A confirmed weak candidate gets that confidence and
     ``consistent_with`` = [q', m']; nothing else changes. The records are not modified in place.
     """
+    return drop_outvoted_loops(_confirm_weak_loops(records, odometry, config), odometry, config.min_confidence)
+
+
+def _confirm_weak_loops(records: dict[int, dict], odometry: NDArray | None, config: VerificationConfig
+                        ) -> dict[int, dict]:
     if odometry is None or config.consistency_window <= 0:
         return records
     P = np.asarray(odometry, float)

@@ -144,3 +144,29 @@ def test_online_detector_confirms_from_earlier_queries_only() -> None:
     # the window forgets: query 90 (9 frames later) finds no partner
     assert det._consistent(90, [_cand(29, T[90], 4)])[0]["confidence"] == 0.0
     assert set(det._recent) == {90}
+
+
+def test_a_loop_its_query_s_other_loops_outvote_is_dropped_ties_and_single_loops_are_kept() -> None:
+    """Every candidate verified (--all-loops): query 110 has right loops to scans 9, 10 and 11 (through the drifting
+    odometry) and one to scan 50 that claims the same relative pose as its loop to 10, 40 m away: it is outvoted 3 to
+    0 (confidence 0, ``outvoted_by`` the three matches); the right ones stay. Two loops that disagree (a tie), one
+    loop a query, or no odometry change nothing."""
+    from graffmatch.loops.consistency import drop_outvoted_loops
+
+    gt, odo = _drive()
+    q = 110
+    right = {m: invert(gt[m]) @ gt[q] for m in (9, 10, 11)}
+    cands = [_cand(m, T, 8, rank=k, confidence=0.8) for k, (m, T) in enumerate(right.items())]
+    cands.append(_cand(50, right[10], 8, rank=3, confidence=0.9))
+    out = drop_outvoted_loops({q: {"query": q, "candidates": cands}}, odo, 0.5)[q]["candidates"]
+    assert [c["confidence"] for c in out] == [0.8, 0.8, 0.8, 0.0]
+    assert sorted(out[3]["outvoted_by"]) == [9, 10, 11] and all("outvoted_by" not in c for c in out[:3])
+    assert cands[3]["confidence"] == 0.9  # not modified in place
+    # through apply_sequence_consistency too (the one path of loops, the detector and the benchmark)
+    full = apply_sequence_consistency({q: {"query": q, "candidates": cands}}, odo, _config())[q]["candidates"]
+    assert full[3]["confidence"] == 0.0
+    for recs in ({q: {"query": q, "candidates": [cands[0], cands[3]]}}, {q: {"query": q, "candidates": cands[3:]}}):
+        assert drop_outvoted_loops(recs, odo, 0.5) == recs
+    assert drop_outvoted_loops({q: {"query": q, "candidates": cands}}, None, 0.5)[q]["candidates"] == cands
+    with pytest.raises(InvalidInputError, match="odometry"):
+        drop_outvoted_loops({q: {"query": q, "candidates": cands}}, odo[:20], 0.5)
