@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graffmatch.errors import InvalidInputError
-from graffmatch.geometry.transforms import invert
+from graffmatch.geometry.transforms import invert, rotation_error_deg
 from graffmatch.loops.verify import VerificationConfig, loop_confidence
 
 
@@ -83,9 +83,8 @@ def drop_outvoted_loops(records: dict[int, dict], odometry: NDArray | None, min_
                     continue
                 m2 = int(r["candidates"][k2]["match"])
                 along = abs(path[m] - path[m2])
-                E = invert(place[k]) @ place[k2]
-                deg = np.degrees(np.arccos(np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
-                if np.linalg.norm(E[:3, 3]) > OUTVOTE_M + OUTVOTE_PATH_FRACTION * along or deg > OUTVOTE_DEG + OUTVOTE_DEG_PER_M * along:
+                deg = rotation_error_deg(place[k], place[k2])
+                if np.linalg.norm(place[k][:3, 3] - place[k2][:3, 3]) > OUTVOTE_M + OUTVOTE_PATH_FRACTION * along or deg > OUTVOTE_DEG + OUTVOTE_DEG_PER_M * along:
                     against.append(m2)
             if len(against) > len(acc) - 1 - len(against):
                 if out[q] is records[q]:

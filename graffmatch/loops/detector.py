@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -213,7 +214,7 @@ class LoopDetector:
 
         warm_up_exact()  # the registration's exact path for rounding-fragile groups
         # landmark-poor, medium (the solver cuts subgraphs of its active set), rich with outliers,
-        # and noise-free (the registration's exact fallback for rounding-fragile groups)
+        # and noise-free
         for n_poles, n_planes, noise, outliers, seed in ((4, 6, 1.0, 0, 0), (9, 17, 1.0, 0, 3), (15, 30, 1.0, 12, 0),
                                                          (6, 20, 0.0, 0, 0)):
             sc = make_scene_pair(n_poles, n_planes, seed=seed, yaw_deg=30.0, translation=(2.0, 1.0, 0.0),
@@ -253,27 +254,25 @@ class LoopDetector:
             return None
         return scans[i]
 
-    def quick_index(self, i: int) -> QuickIndex:
-        """The BEV quick-check index of scan i, computed once and kept in the database."""
-        cache = self.db.extra.setdefault("quick", [])
+    def _per_scan(self, key: str, i: int, make: Callable[[], QuickIndex]) -> QuickIndex:
+        """Scan i's entry of the database's per-scan cache ``key``, made once."""
+        cache = self.db.extra.setdefault(key, [])
         if len(cache) < len(self.db):
             cache.extend([None] * (len(self.db) - len(cache)))
         if cache[i] is None:
-            cache[i] = quick_index(self.landmarks(i), self.config.quick)
+            cache[i] = make()
         return cache[i]
 
+    def quick_index(self, i: int) -> QuickIndex:
+        """The BEV quick-check index of scan i (of its local map when it has one), kept in the database."""
+        return self._per_scan("quick", i, lambda: quick_index(self.landmarks(i), self.config.quick))
+
     def own_quick_index(self, i: int) -> QuickIndex:
-        """The quick-check index of scan i's own landmarks (its local map's is :meth:`quick_index`): a pair
-        verified on the own maps is screened on them (``plan.on_own_maps``)."""
-        local = self.db.extra.get("local")
-        if local is None or i >= len(local) or local[i] is None:
+        """The quick-check index of scan i's own landmarks: a pair verified on the own maps is screened on them
+        (``plan.on_own_maps``); the same index as :meth:`quick_index` for a scan without a local map."""
+        if self.landmarks(i) is self.db.landmarks[i]:
             return self.quick_index(i)
-        cache = self.db.extra.setdefault("own_quick", [])
-        if len(cache) < len(self.db):
-            cache.extend([None] * (len(self.db) - len(cache)))
-        if cache[i] is None:
-            cache[i] = quick_index(self.db.landmarks[i], self.config.quick)
-        return cache[i]
+        return self._per_scan("own_quick", i, lambda: quick_index(self.db.landmarks[i], self.config.quick))
 
     def _consistent(self, query: int, recs: list[dict]) -> list[dict]:
         """The query's records with its weak loops that an earlier query's loop confirms."""

@@ -177,8 +177,6 @@ def verify_query(
                 frac = score / max(1, min(qi.size, ci.size))
                 rec.update(quick_score=score, quick_fraction=float(frac), quick_translation_m=float(np.hypot(e[1], e[2])))
                 rec["quick_pass"] = quick_gate(score, frac, rec["quick_translation_m"], config)
-                if fallback and (own_of(query) is not q_ls or own_of(rec["match"]) is not landmarks_of(rec["match"])):  # type: ignore[misc]
-                    rec["own_maps"] = True  # a local map was set aside
         share = (time.perf_counter() - t0) / len(recs)
         for rec in recs:
             rec["seconds"] = share

@@ -186,22 +186,19 @@ def _verify_task(args: tuple) -> list[dict]:
             return None
         return _CACHE.get(_CACHE.scans, i, lambda: load_scan_cloud(Path(out_dir) / LANDMARK_DIR / f"{i:06d}.npz"))
 
-    def qi(i: int) -> QuickIndex:
+    def indexed(store: OrderedDict, i: int, ls: Callable[[int], Any]) -> QuickIndex:
         # per-scan precomputation (like the landmarks themselves): timed apart from the query
-        t, hit = time.perf_counter(), i in _CACHE.quick
-        v = _CACHE.get(_CACHE.quick, i, lambda: quick_index(lm(i), config.quick))
+        t, hit = time.perf_counter(), i in store
+        v = _CACHE.get(store, i, lambda: quick_index(ls(i), config.quick))
         if not hit:
             index_s[0] += time.perf_counter() - t
         return v
 
+    def qi(i: int) -> QuickIndex:
+        return indexed(_CACHE.quick, i, lm)
+
     def own_qi(i: int) -> QuickIndex:  # a pair verified on the own maps is screened on them (plan.on_own_maps)
-        if i not in local_ids:
-            return qi(i)
-        t, hit = time.perf_counter(), i in _CACHE.own_quick
-        v = _CACHE.get(_CACHE.own_quick, i, lambda: quick_index(own(i), config.quick))
-        if not hit:
-            index_s[0] += time.perf_counter() - t
-        return v
+        return qi(i) if i not in local_ids else indexed(_CACHE.own_quick, i, own)
 
     records = []
     for q, cands in chunk:
