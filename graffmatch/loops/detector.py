@@ -28,7 +28,7 @@ from graffmatch.loops.database import (
     with_evidence_points,
 )
 from graffmatch.loops.descriptor import DescriptorConfig, landmark_descriptor
-from graffmatch.loops.local_map import local_map_at, stored_scan_cloud
+from graffmatch.loops.local_map import local_map_at
 from graffmatch.loops.plan import verify_query
 from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_check_many, quick_index
 from graffmatch.loops.retrieval import RetrievalConfig, eligible_count, make_retriever
@@ -176,7 +176,7 @@ class LoopDetector:
         q = self.db.add(ls, desc, timestamp, position, **extra)
         v = self.config.matcher.verification
         local = local_map_at(q, self.db.landmarks.__getitem__, self._pose_of, self.config.verification, v.voxel,
-                             v.max_points, self.scan_of)
+                             v.max_points)
         if local is not None:  # matched on its local map: its descriptor too (loops/local_map.py)
             self.db.extra["local"][q] = local  # the database.add above made the slot
             self.db.descriptors[q] = landmark_descriptor(local, self.config.descriptor)
@@ -249,7 +249,10 @@ class LoopDetector:
     def scan_of(self, i: int) -> NDArray[np.float32] | None:
         """Scan i's stored scan cloud (None: it keeps none, or has ``scan_cloud_below`` landmarks or
         more: a database stored with a larger setting verifies as this config says)."""
-        return stored_scan_cloud(self.db, i, self.config.verification)
+        scans = self.db.extra.get("scan")
+        if scans is None or i >= len(scans) or not self.config.verification.keeps_scan_cloud(len(self.db.landmarks[i])):
+            return None
+        return scans[i]
 
     def _per_scan(self, key: str, i: int, make: Callable[[], QuickIndex]) -> QuickIndex:
         """Scan i's entry of the database's per-scan cache ``key``, made once."""

@@ -33,16 +33,13 @@ from graffmatch.loops.verify import VerificationConfig, agreeing_mask
 from graffmatch.verification.evidence import voxel_downsample
 
 #: A previous frame joins a local map only when at least CHECK_MIN_OVERLAP of its moved evidence points lie within
-#: CHECK_RADIUS_M of the map's check cloud so far. Why: the map trusts the odometry, and KISS-ICP on the real
-#: courtyard's keyframes is often off by 15-76 deg a step; maps merged with it accepted loops 50-98 deg off. The check cloud
-#: is the scan's stored scan cloud when it keeps one (every surface of the scan), else its evidence points (only its
-#: landmarks' support: consecutive scans that extract different landmarks share few of those, so on the simulated
-#: calibration drives 11 % of true steps fail against evidence points, 3 % against scan clouds). Each measure has its
-#: own threshold, in the gap on the courtyard between its 88 ground-truth steps and KISS-ICP's 48 steps off by more
-#: than 5 deg or 1 m: against evidence points 0.66+ against 0.49- (0.55, session 19); against scan clouds 0.76+
-#: against 0.57-, so 0.67, the middle (chosen there, never on a simulated drive; docs/loops.md, session 20).
+#: CHECK_RADIUS_M (two evidence voxels) of the map's points so far. Why: the map trusts the odometry, and KISS-ICP on
+#: the real courtyard's keyframes is off by 15-50 deg a step; maps merged with it accepted loops 50-98 deg off. Over
+#: the courtyard's 88 ground-truth steps the overlap is 0.66-0.94, over KISS-ICP's 46 wrong steps <= 0.47; 0.55 is the
+#: middle of that gap, chosen there and never on a simulated drive (docs/loops.md, session 19). Session 20 recomputed
+#: the gap with the steps' relative error (ground truth 0.66+, the 48 steps off by > 5 deg or 1 m 0.49-) and tried the
+#: scans' stored scan clouds as the check cloud (fewer true steps fail; no setting passed the time gate): not shipped.
 CHECK_MIN_OVERLAP = 0.55
-CHECK_MIN_OVERLAP_SCAN = 0.67
 CHECK_RADIUS_M = 0.6
 
 
@@ -54,16 +51,6 @@ def frame_overlap(moved: NDArray, reference: NDArray, radius: float = CHECK_RADI
     return float(np.mean(d <= radius))
 
 
-def stored_scan_cloud(db: LandmarkDatabase, i: int, config: VerificationConfig) -> NDArray[np.float32] | None:
-    """Scan i's stored scan cloud (None: it keeps none, or has ``scan_cloud_below`` landmarks or more: a
-    database stored with a larger setting verifies as this config says). One reader for the batch run,
-    the online detector and the frame check."""
-    scans = db.extra.get("scan")
-    if scans is None or i >= len(scans) or not config.keeps_scan_cloud(len(db.landmarks[i])):
-        return None
-    return scans[i]
-
-
 def needs_local_map(n_landmarks: int, config: VerificationConfig) -> bool:
     """A scan with this many own landmarks is matched on its local map (when odometry is known)."""
     return config.local_map_frames > 0 and n_landmarks < config.local_map_below
@@ -71,35 +58,28 @@ def needs_local_map(n_landmarks: int, config: VerificationConfig) -> bool:
 
 def local_map(
     own: LandmarkSet,
-    previous: Sequence[tuple[LandmarkSet, NDArray, NDArray | None]],
+    previous: Sequence[tuple[LandmarkSet, NDArray]],
     config: VerificationConfig,
     voxel: float,
     max_points: int,
-    own_scan: NDArray | None = None,
 ) -> LandmarkSet:
-    """``own`` merged with ``previous`` ((landmarks, T_own_previous, stored scan cloud or None) triples,
-    nearest frame first).
+    """``own`` merged with ``previous`` ((landmarks, T_own_previous) pairs, nearest frame first).
 
     A moved landmark that agrees with one already in the map (:func:`agreeing_mask`: same type,
     ``agree_deg``, ``agree_m``) is the same pole or facade seen again and is dropped, so the own
     landmarks and then the nearer frames' win; at most ``max_landmarks_per_type`` of a type are kept,
     in that order. Evidence points (when ``own`` carries them): the union of the frames' moved
-    points, voxelised (``voxel``, ``max_points``, the own points first). A frame joins only when its moved evidence
-    points overlap the map's check cloud (:func:`frame_overlap`): its frames' scan clouds (``own_scan`` and the
-    triples' third items) where kept, at ``CHECK_MIN_OVERLAP_SCAN``, else their evidence points, at
-    ``CHECK_MIN_OVERLAP``. A scan with neither gets no local map beyond its own landmarks, and the merge ends at the
-    first frame that fails or has no points. Deterministic."""
+    points, voxelised (``voxel``, ``max_points``, the own points first). A frame joins only when its moved points
+    overlap the map's (:func:`frame_overlap`, ``CHECK_MIN_OVERLAP``): a scan without points gets no local map
+    beyond its own landmarks, and the merge ends at the first frame that fails. Deterministic."""
     merged = own.without_points()
     clouds = [] if own.points is None else [np.asarray(own.points, np.float64)]
-    on_scans = own_scan is not None and len(own_scan) > 0
-    check = [np.asarray(own_scan, np.float64)] if on_scans else list(clouds)
-    threshold = CHECK_MIN_OVERLAP_SCAN if on_scans else CHECK_MIN_OVERLAP
-    for ls, T, scan in previous:
+    for ls, T in previous:
         T = np.asarray(T, np.float64)
-        pts = None if ls.points is None or not len(ls.points) else _moved(ls.points, T)
+        pts = None if ls.points is None or not len(ls.points) else np.asarray(ls.points, np.float64) @ T[:3, :3].T + T[:3, 3]
         # the map trusts the odometry: a frame joins only when its moved points land on the map's (the earlier
         # frames are reached through it, so a frame that fails, or has no points to check, ends the merge)
-        if not check or pts is None or frame_overlap(pts, np.concatenate(check)) < threshold:
+        if not clouds or pts is None or frame_overlap(pts, np.concatenate(clouds)) < CHECK_MIN_OVERLAP:
             break
         if len(ls):
             moved = ls.without_points().transform(T)
@@ -107,7 +87,6 @@ def local_map(
             if new.any():
                 merged = LandmarkSet.concatenate([merged, moved[np.flatnonzero(new)]])
         clouds.append(pts)
-        check.append(_moved(scan, T) if on_scans and scan is not None and len(scan) else pts)
     cap = config.max_landmarks_per_type
     if cap is not None:
         keep = np.concatenate([np.flatnonzero(merged.types == k)[:cap] for k in np.unique(merged.types)])
@@ -121,10 +100,6 @@ def local_map(
                                                                                      max_points))))
 
 
-def _moved(points: NDArray, T: NDArray) -> NDArray[np.float64]:
-    return np.asarray(points, np.float64) @ T[:3, :3].T + T[:3, 3]
-
-
 def local_map_at(
     i: int,
     own_of: Callable[[int], LandmarkSet],
@@ -132,14 +107,12 @@ def local_map_at(
     config: VerificationConfig,
     voxel: float,
     max_points: int,
-    scan_of: Callable[[int], NDArray | None] | None = None,
 ) -> LandmarkSet | None:
     """Scan i's local map, or None when it does not need one or its pose is unknown.
 
     ``own_of(j)``: scan j's stored landmarks; ``pose_of(j)``: its odometry pose (world <- scan) or
-    None; the frames before the first unknown pose are not used; ``scan_of(j)``: its stored scan cloud
-    or None (the frame check's cloud, :func:`local_map`). One function for the batch run and the online
-    detector."""
+    None; the frames before the first unknown pose are not used. One function for the batch run and
+    the online detector."""
     own = own_of(i)
     P_i = pose_of(i)
     if P_i is None or not needs_local_map(len(own), config):
@@ -149,8 +122,8 @@ def local_map_at(
         P_j = pose_of(j)
         if P_j is None:
             break
-        prev.append((own_of(j), np.linalg.solve(P_i, P_j), None if scan_of is None else scan_of(j)))
-    return local_map(own, prev, config, voxel, max_points, None if scan_of is None else scan_of(i))
+        prev.append((own_of(j), np.linalg.solve(P_i, P_j)))
+    return local_map(own, prev, config, voxel, max_points)
 
 
 def local_maps(
@@ -159,12 +132,11 @@ def local_maps(
     config: VerificationConfig,
     voxel: float,
     max_points: int,
-    scan_of: Callable[[int], NDArray | None] | None = None,
 ) -> dict[int, LandmarkSet]:
     """The local map of every scan of a drive that needs one ({scan: map}); ``odometry`` (n, 4, 4)
     world <- scan."""
     P = np.asarray(odometry, np.float64)
-    maps = {i: local_map_at(i, own_of, P.__getitem__, config, voxel, max_points, scan_of) for i in range(len(P))}
+    maps = {i: local_map_at(i, own_of, P.__getitem__, config, voxel, max_points) for i in range(len(P))}
     return {i: m for i, m in maps.items() if m is not None}
 
 
@@ -178,10 +150,8 @@ def attach_local_maps(
 ) -> dict[int, LandmarkSet]:
     """Build a whole database's local maps and attach them (``db.extra['local']``, read by
     ``LoopDetector.landmarks``), each scan with one taking its local map's descriptor (the retriever
-    reads the database's). The database keeps the own tables; its scan clouds (``db.extra['scan']``, as
-    :func:`stored_scan_cloud` reads them) check the frames. Returns the maps."""
-    maps = local_maps(db.landmarks.__getitem__, odometry, config, voxel, max_points,
-                      lambda j: stored_scan_cloud(db, j, config))
+    reads the database's). The database keeps the own tables. Returns the maps."""
+    maps = local_maps(db.landmarks.__getitem__, odometry, config, voxel, max_points)
     db.extra["local"] = [maps.get(i) for i in range(len(db))]
     for i, ls in maps.items():
         db.descriptors[i] = landmark_descriptor(ls, descriptor)

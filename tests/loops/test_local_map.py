@@ -191,41 +191,6 @@ def test_a_frame_the_map_does_not_confirm_ends_the_merge() -> None:
     assert own is not None and len(own) == len(bare[10])
 
 
-def test_the_check_reads_scan_clouds_where_kept() -> None:
-    """Evidence points are only a scan's landmark support, and consecutive landmark-poor scans often extract
-    different landmarks (half of sim-downtown-s1's true steps failed on them): here each frame extracts every other
-    pole and facade it sees, alternating, so a previous frame's evidence misses the scan's (overlap 0, the map ends at
-    once) while it lies on the scan's stored scan cloud (every surface it sees), so with ``scan_of`` every frame joins;
-    a step turned 20 deg still ends the merge against the scan clouds (CHECK_MIN_OVERLAP_SCAN)."""
-    from graffmatch.loops.local_map import CHECK_MIN_OVERLAP_SCAN, frame_overlap
-
-    world, P = _world(), _poses()
-    full = _frames(world, P)
-    ws = LandmarkSet.from_landmarks(world)
-    near = [np.flatnonzero(np.linalg.norm(ws.anchors[:, :2] - T[:2, 3], axis=1) < 30.0) for T in P]  # as _frames
-    half = [f[np.flatnonzero(n % 2 == i % 2)] for i, (f, n) in enumerate(zip(full, near, strict=True))]
-    scans = [np.asarray(f.points, np.float32) for f in full]
-    cfg = _config(frames=5)
-    own = local_map_at(10, half.__getitem__, P.__getitem__, cfg, VOXEL, MAX_POINTS)
-    checked = local_map_at(10, half.__getitem__, P.__getitem__, cfg, VOXEL, MAX_POINTS, scans.__getitem__)
-    assert own is not None and checked is not None
-    assert len(own) == len(half[10])  # evidence against evidence: frame 9 misses, nothing joins
-    T = np.linalg.solve(P[10], P[9])
-    assert frame_overlap(half[9].points @ T[:3, :3].T + T[:3, 3], half[10].points) < 0.05
-    assert frame_overlap(half[9].points @ T[:3, :3].T + T[:3, 3], scans[10]) > 0.99
-    # on the scan clouds all five frames join: the map holds the poles and facades that either parity saw
-    assert len(checked) > len(own) and len(checked) >= 0.9 * len(near[10])
-    assert len(checked.points) > len(own.points)
-    bad = P.copy()
-    turn = np.eye(4)
-    turn[:3, :3] = Rotation.from_euler("z", 20.0, degrees=True).as_matrix()
-    bad[:10] = P[10] @ turn @ np.linalg.solve(P[10], P[:10])  # the step 9 -> 10 is wrong
-    T = np.linalg.solve(bad[10], bad[9])
-    assert frame_overlap(half[9].points @ T[:3, :3].T + T[:3, 3], scans[10]) < CHECK_MIN_OVERLAP_SCAN
-    cut = local_map_at(10, half.__getitem__, bad.__getitem__, cfg, VOXEL, MAX_POINTS, scans.__getitem__)
-    assert cut is not None and cut.approx_equal(own, atol=0.0)
-
-
 @settings(max_examples=25, deadline=None)
 @given(st.floats(-np.pi, np.pi), st.floats(-0.3, 0.3), st.floats(-0.3, 0.3),
        st.tuples(st.floats(-500, 500), st.floats(-500, 500), st.floats(-50, 50)))
@@ -266,31 +231,6 @@ def test_online_detector_builds_the_batch_maps() -> None:
     for i, ls in enumerate(frames):
         det2.add(ls, timestamp=float(i))
     assert all(det2.landmarks(i) is det2.db.landmarks[i] for i in range(len(P)))
-
-
-def test_online_detector_checks_frames_on_the_scan_clouds_as_the_batch_run(shared_data) -> None:
-    """Real courtyard scans added raw to the online detector keep their scan clouds and evidence points (every scan
-    below 100 landmarks here) and are matched on local maps checked against them; the batch path (attach_local_maps, reading the stored
-    clouds through stored_scan_cloud) builds the same maps, and with the ground-truth steps frames do join."""
-    from graffmatch.loops.local_map import attach_local_maps
-
-    ds, P, _ = _courtyard(shared_data)
-    cfg = LoopDetectorConfig()
-    cfg.verification.local_map_frames, cfg.verification.local_map_below = 3, 100
-    cfg.verification.scan_cloud_below = cfg.verification.evidence_points_below = 100
-    det = LoopDetector(cfg)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        for i in range(6):
-            det.add(ds[i].points, timestamp=float(i), pose=P[i])
-    assert all(det.scan_of(i) is not None for i in range(6))
-    online = [det.landmarks(i) for i in range(6)]
-    v = cfg.matcher.verification
-    maps = attach_local_maps(det.db, P[:6], cfg.verification, cfg.descriptor, v.voxel, v.max_points)
-    assert sorted(maps) == list(range(6))
-    for i in range(6):
-        assert online[i].approx_equal(maps[i], atol=0.0)
-    assert sum(len(maps[i]) > len(det.db.landmarks[i]) for i in range(1, 6)) >= 3
 
 
 def test_real_courtyard_local_maps_of_landmark_poor_cuts_accept_no_wrong_pose(shared_data) -> None:
