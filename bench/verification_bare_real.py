@@ -32,8 +32,10 @@ COURTYARD = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "ba
 def summarise(rows: list[dict]) -> dict:
     """Valid, valid-and-right, valid-and-wrong, precision, and the wrong ones (worst first)."""
     valid = [r for r in rows if r["valid"]]
-    wrong = [r for r in valid if r["rot_deg"] > 5.0 or r["tr_m"] > 1.0]
-    rr = np.array([r["rival_ratio"] for r in valid if r["rival_ratio"] is not None and r not in wrong], float)
+    is_wrong = [r["rot_deg"] > 5.0 or r["tr_m"] > 1.0 for r in valid]
+    wrong = [r for r, w in zip(valid, is_wrong, strict=True) if w]
+    rr = np.array([r["rival_ratio"] for r, w in zip(valid, is_wrong, strict=True)
+                   if not w and r["rival_ratio"] is not None], float)
     return {"pairs": len(rows), "valid": len(valid), "valid_wrong": len(wrong),
             "precision": 1.0 - len(wrong) / max(len(valid), 1),
             "valid_right_rival_ratio_median": float(np.median(rr)) if len(rr) else None,
@@ -48,7 +50,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from graffmatch.datasets.folder import KittiFolder
-    from graffmatch.geometry.transforms import rotation_error_deg
+    from graffmatch.geometry.transforms import transform_errors
     from graffmatch.matcher import GraffMatcher
     from graffmatch.pipeline import ScanMatcher
 
@@ -71,9 +73,9 @@ def main() -> None:
                 row = {"query": q, "match": m, "valid": bool(res.valid), "confidence": float(res.confidence),
                        "gt_distance_m": float(np.linalg.norm(Tg[:3, 3])), "rival_ratio": res.info.get("rival_ratio"),
                        "rot_deg": float("inf"), "tr_m": float("inf")}
-                if res.T_target_source is not None:
-                    E = np.linalg.solve(Tg, np.asarray(res.T_target_source, float))
-                    row.update(rot_deg=float(rotation_error_deg(E, np.eye(3))), tr_m=float(np.linalg.norm(E[:3, 3])))
+                if res.T_target_source is not None:  # bench/verification.py's measure
+                    rot, tr = transform_errors(res.T_target_source, Tg)
+                    row.update(rot_deg=float(rot), tr_m=float(tr))
                 modes[mode].append(row)
         seconds[mode] = time.perf_counter() - t0
         s = summarise(modes[mode])
