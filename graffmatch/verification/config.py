@@ -283,6 +283,13 @@ class VerificationConfig(BaseModel):
         description="logistic calibration: sigmoid(c0 + c1 * overlap + c2 * (1 - rival_ratio) + c3 * conflict), "
         "fitted on the calibration split of bench/verification.py (conflict 0 without support points)",
     )
+    min_valid_confidence: float = Field(
+        0.5, ge=0, le=1,
+        description="a result is valid only when its confidence reaches this. Why: the confidence is the calibrated "
+        "probability that the answer is right, and a valid answer should be the likelier one; the thresholds alone "
+        "let 180-deg flips of real courtyard pairs through at 0.13-0.40 (docs/verification.md, sessions 20-21). "
+        "0.5 is the probability's midpoint, not fitted to any pairs",
+    )
     lines_only: DecisionThresholds | None = Field(
         default_factory=lambda: DecisionThresholds(min_overlap=LINES_ONLY[0], max_rival_ratio=LINES_ONLY[1],
                                                    max_conflict=LINES_ONLY[2], max_slide_ratio=LINES_ONLY[3]),

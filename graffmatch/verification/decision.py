@@ -196,3 +196,15 @@ def decide(hyps: list[Hypothesis], cfg: VerificationConfig, min_score: float,
         )
     conf = 0.0 if best.degenerate else confidence_of(best.score, ratio, cfg)
     return Verdict(best, runner, not problems, conf, 1.0 - ratio, ratio, problems)
+
+
+def low_confidence_problem(verdict: Verdict, floor: float) -> str:
+    """Why a verdict that passed every threshold is still not valid: its confidence is below ``floor``
+    (``VerificationConfig.min_valid_confidence``). Names the rival when there is one."""
+    best = verdict.best
+    msg = f"low confidence: {verdict.confidence:.2f} < {floor:.2f} (overlap {0.0 if best is None else best.score:.2f}"
+    if best is None or verdict.runner_up is None:
+        return msg + ", no distinct rival)"
+    rot, tr = transform_gap(best.T_target_source, verdict.runner_up.T_target_source)
+    return msg + (f"; a {rot:.0f} deg / {tr:.1f} m alternative ({verdict.runner_up.origin}) scores "
+                  f"{verdict.rival_ratio:.2f} of the best)")
