@@ -60,7 +60,7 @@ def link_landmarks(src: Path, dst: Path, names: list[str]) -> None:
 
 
 def run_setting(args, frames: int, below: int) -> dict:
-    out = args.out / ("off" if frames == 0 else f"f{frames}_b{below}")
+    out = args.out / ("off" if frames == 0 else f"f{frames}_b{below}{args.tag}")
     names = [f"{suite}-s{seed}+deskew" for suite, seed in DRIVES]
     # the recording runs' tables were stored with clouds below 12 (another cache key): the first setting
     # extracts the shipped tables once, every later one links that setting's
@@ -70,7 +70,7 @@ def run_setting(args, frames: int, below: int) -> dict:
         cmd = [sys.executable, str(BENCH), "--realism", "realistic", "--scans", "400", "--deskew", "--data", str(args.data),
                "--out", str(out), "--methods", "ours", "--no-courtyard", "--workers", str(args.workers),
                "--drives", *[f"{s}:{k}" for s, k in DRIVES],
-               "--verification", f"local_map_frames={frames}", f"local_map_below={below}"]
+               "--verification", f"local_map_frames={frames}", f"local_map_below={below}", *args.verification]
         t0 = time.perf_counter()
         subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
         print(f"  ran {out.name} in {time.perf_counter() - t0:.0f} s", flush=True)
@@ -93,11 +93,15 @@ def main() -> None:
     ap.add_argument("--frames", type=int, nargs="+", default=[0, 5, 10, 20])
     ap.add_argument("--below", type=int, nargs="+", default=[8, 12])
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--verification", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="further VerificationConfig overrides for every setting but off (session 21)")
+    ap.add_argument("--tag", default="", help="suffix of the settings' output folders (with --verification)")
+    ap.add_argument("--no-off", action="store_true", help="skip the off row (reused from an earlier run)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--rule", default="docs/loops.md session 18", help="where the rule of this run is written")
     args = ap.parse_args()
     t0 = time.perf_counter()
-    settings = [(0, args.below[0])] + [(f, b) for f in args.frames if f > 0 for b in args.below]
+    settings = ([] if args.no_off else [(0, args.below[0])]) + [(f, b) for f in args.frames if f > 0 for b in args.below]
     grid = []
     for f, b in settings:
         row = run_setting(args, f, b)
@@ -115,7 +119,7 @@ def main() -> None:
             print(f"  {name}: {a['e2e_r100p']:.3f} -> {b['e2e_r100p']:.3f} ({b['positives']} positives)")
     if args.json:
         write_json(args.json, {"machine": machine(), "wall_s": time.perf_counter() - t0,
-                               "rule": args.rule, "chosen": {k: chosen[k] for k in
+                               "rule": args.rule, "verification": args.verification, "chosen": {k: chosen[k] for k in
                                                                              ("local_map_frames", "local_map_below")},
                                "grid": grid})
 
