@@ -45,7 +45,7 @@ def verification_plan(
 
     Passing candidates: best quick score first, then retrieval rank (with ``quick_order_odometry`` the
     odometry-nearest, rank without odometry); with ``quick_order_radius``
-    those whose quick estimate (``quick_order_min_inliers`` or more inliers) lies beyond the
+    those whose quick estimate (``quick_translation_min_inliers`` or more inliers) lies beyond the
     place radius less the margin go last, the least beyond first. Quick-rejected pairs of two scans with clouds
     (``scans_skip_quick_check``): with ``scans_screen_min_ratio`` only those with odometry, nearest by
     the odometry first (a landmark-poor query has no quick score to rank by); else best quick score
@@ -54,14 +54,11 @@ def verification_plan(
         d = odometry_distance(r["match"]) if config.quick_order_odometry else None
         return r["rank"] if d is None else d
 
-    order_inliers = (config.quick_translation_min_inliers if config.quick_order_min_inliers is None
-                     else config.quick_order_min_inliers)
-
     def key(r: dict) -> tuple:
         t = r.get("quick_translation_m", 0.0)
         beyond = bool(
             config.quick_order_radius and config.max_translation_m is not None
-            and r["quick_score"] >= order_inliers
+            and r["quick_score"] >= config.quick_translation_min_inliers
             and t > config.max_translation_m - config.place_margin_m)
         # beyond ones nearest first: the quick estimate is off by decimetres to metres (balm_courtyard:
         # 4.76 m quick, 4.66 m verified), so the least beyond is the likeliest to lie inside after all

@@ -258,12 +258,6 @@ class VerificationConfig(BaseModel):
         "they cannot become loops when the estimate is right, and they used the verification budget of queries "
         "whose partners lie 4.7-5 m away (sim-downtown-s1, docs/loops.md session 16); the least beyond first",
     )
-    quick_order_min_inliers: int | None = Field(
-        None, ge=1,
-        description="... the inliers a quick estimate needs to count as beyond the radius in that order (None: "
-        "quick_translation_min_inliers, the gate's). Reordering drops no candidate; it only changes which are reached "
-        "within max_verified",
-    )
     quick_order_odometry: bool = Field(
         QUICK_ORDER_ODOMETRY,
         description="with odometry: passing candidates of equal quick score are verified odometry-nearest first instead "
