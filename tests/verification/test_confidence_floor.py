@@ -16,17 +16,20 @@ from graffmatch.pipeline import ScanMatcher
 from graffmatch.verification.decision import Hypothesis, Verdict, low_confidence_problem
 
 
-@pytest.fixture(scope="module")
-def courtyard(shared_data):
-    court = shared_data / "balm_courtyard"
-    if not court.is_dir():
-        pytest.skip(f"no courtyard scans under {court}")
-    ds = KittiFolder(court)
+def _extracted(ds: KittiFolder, scans: tuple[int, ...]) -> dict:
+    """The scans' landmarks with support points, as ``ScanMatcher`` extracts them."""
     sm = ScanMatcher()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        sets = {i: sm.extract(ds[i].points) for i in (3, 30, 46, 81)}
-    return sets, np.asarray(ds.poses)
+        return {i: sm.extract(ds[i].points) for i in scans}
+
+
+@pytest.fixture(scope="module")
+def courtyard(shared_data):
+    if not (shared_data / "balm_courtyard").is_dir():
+        pytest.skip(f"no courtyard scans under {shared_data / 'balm_courtyard'}")
+    ds = KittiFolder(shared_data / "balm_courtyard")
+    return _extracted(ds, (3, 30, 46, 81)), np.asarray(ds.poses)
 
 
 def _matcher(floor: float | None = None) -> GraffMatcher:
