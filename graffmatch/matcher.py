@@ -27,7 +27,7 @@ from graffmatch.geometry.landmarks import LandmarkSet, LandmarkType
 from graffmatch.geometry.set_cache import derived_cache
 from graffmatch.registration.closed_form import register_landmarks
 from graffmatch.verification.config import VerificationConfig
-from graffmatch.verification.decision import Hypothesis, low_confidence_problem
+from graffmatch.verification.decision import Hypothesis
 from graffmatch.verification.verify import Evidence, evidence_for, verify_graph
 
 TypeName = Literal["point", "line", "plane"]
@@ -295,8 +295,6 @@ def _verified_once(source, target, graph, W, sol, cfg: GraffMatchConfig, vcfg, v
         # raw scans verified it (VerificationConfig.point_hypotheses)
         problems.insert(0, f"only {best.n_associations} associations (< {need})")
     problems += reach_problems(source, target, best.T_target_source)
-    if not problems and verdict.confidence < vcfg.min_valid_confidence:
-        problems.append(low_confidence_problem(verdict, vcfg.min_valid_confidence))
     common.update(associations=best.associations, score=best.objective,
                   weights=np.ones(best.n_associations))
     common["info"].update(origin=best.origin, rival_ratio=verdict.rival_ratio,

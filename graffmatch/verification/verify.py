@@ -22,6 +22,7 @@ from graffmatch.verification.decision import (
     confidence_of,
     decide,
     is_settled,
+    low_confidence_problem,
     merge_hypotheses,
     transform_gap,
 )
@@ -586,6 +587,9 @@ def verify_graph(
         check_view(verdict, ev, cfg)
     if ev.has_points and cfg.max_slide_ratio is not None and verdict.best is not None:
         _check_slide(verdict, ev, cfg)
+    if verdict.valid and verdict.confidence < cfg.min_valid_confidence:  # last: the checks above set the confidence
+        verdict.valid = False
+        verdict.problems.append(low_confidence_problem(verdict, cfg.min_valid_confidence))
     if verdict.best is not None:
         verdict.best.info["wide_differs"] = bool(ev.has_points and not pair_cands)
         verdict.best.info["search"] = "wide" if wide else "first"
