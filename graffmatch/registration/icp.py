@@ -83,6 +83,21 @@ def refine_icp(
     return np.asarray(res.transformation, dtype=np.float64).copy(), float(res.fitness), float(res.inlier_rmse)
 
 
+def icp_fitness(source_points: ArrayLike, target_points: ArrayLike, T: ArrayLike, max_distance: float) -> float:
+    """Share of the source points that ``T`` puts within ``max_distance`` of a target point (ICP's fitness, computed
+    the same way for any transform, so a start and an ICP result compare like with like)."""
+    from scipy.spatial import cKDTree
+
+    T = check_transform(T, "T")
+    S = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
+    G = np.asarray(target_points, dtype=np.float64).reshape(-1, 3)
+    S, G = S[np.all(np.isfinite(S), axis=1)], G[np.all(np.isfinite(G), axis=1)]
+    if len(S) == 0 or len(G) == 0:
+        return 0.0
+    d, _ = cKDTree(G).query(S @ T[:3, :3].T + T[:3, 3], k=1, distance_upper_bound=float(max_distance))
+    return float(np.mean(np.isfinite(d)))
+
+
 def matched_support_points(
     source: LandmarkSet, target: LandmarkSet, associations: ArrayLike
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
