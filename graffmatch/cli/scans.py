@@ -207,6 +207,11 @@ def register(
         RefineChoice,
         typer.Option(help="Refine with ICP on the matched landmarks' support points."),
     ] = RefineChoice.none,
+    scan_realign: Annotated[
+        bool,
+        typer.Option(help="With both scans read: re-align a valid support-point answer by ICP on the scans "
+                     "(1 m correspondences; kept when it reaches at least as many points)."),
+    ] = True,
     view: Annotated[
         Path | None, typer.Option(help="Write the interactive 3D view (one HTML file).")
     ] = None,
@@ -259,6 +264,7 @@ def register(
                 method=refine.value, points="scans" if both_scans else "landmarks",
                 **settings.icp.model_dump(),
             ),
+            **({} if scan_realign else {"scan_realign_m": None}),
         ))
         with stage(progress, task, "matching and verifying"):
             result = scan_matcher.match_scans(src.landmarks, tgt.landmarks, src.points, tgt.points,
@@ -359,6 +365,9 @@ def register(
             "extract_target": tgt.timings,
         },
         "refine": refine_info,
+        "scan_realign": None if "scan_realign" not in result.info else {
+            **result.info["scan_realign"], "T_support": result.info.get("T_support"),
+            "enabled": scan_realign},
         "ground_truth": gt_info,
         "config": STATE.settings.model_dump(mode="json"),
     }

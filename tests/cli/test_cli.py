@@ -251,6 +251,10 @@ def test_extract_and_register_real_scans(kitti, tmp_path):
     assert (folder / "config.yaml").is_file()
     assert data["valid"] and data["ground_truth"]["success"], res.output
     assert data["ground_truth"]["rotation_error_deg"] < 2.0
+    # the support points' answer was re-aligned on the scans (session 22), and the record says how far
+    realign = data["scan_realign"]
+    assert realign["enabled"] and realign["fitness_after"] >= realign["fitness_before"]
+    assert len(realign["T_support"]) == 4 or not realign["applied"]
     # landmarks of the scans were saved (with points) next to the result, and are the same
     saved = LandmarkSet.load(folder / "result_source_landmarks.npz")
     assert saved.points is not None and saved.approx_equal(ls0)
@@ -265,6 +269,15 @@ def test_extract_and_register_real_scans(kitti, tmp_path):
     run("view", moved / "result.json", "--no-points", "--png", tmp_path / "top.png")
     assert (moved / "result.html").stat().st_size > 1_000_000
     assert (tmp_path / "top.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_register_without_scan_realignment(kitti, tmp_path):
+    """--no-scan-realign returns the support points' answer as it is (no re-alignment record)."""
+    s0, s5 = kitti["scans"][0], kitti["scans"][5]
+    run("register", s0, s5, "--gt", "auto", "--no-scan-realign", "-o", tmp_path / "r.json", code=0)
+    data = json.loads((tmp_path / "r.json").read_text())
+    assert data["valid"] and data["scan_realign"] is None
+    assert data["T_target_source"] == data["T_target_source_matcher"]
 
 
 def test_extract_folder(kitti, tmp_path):
