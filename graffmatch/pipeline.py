@@ -290,7 +290,7 @@ class ScanMatcher:
         T0 = np.asarray(result.T_target_source, dtype=np.float64)
         T, _fit, _rmse = refine_icp(ps, pt, T0, d, self.config.scan_realign_iterations, True, rc.normal_radius,
                                     normals, rc.relative_change, rc.relative_change)
-        before, after = icp_fitness(ps, pt, T0, d), icp_fitness(ps, pt, T, d)
+        before, after = (float(f) for f in icp_fitness(ps, pt, np.stack([T0, T]), d))
         rot = rotation_error_deg(T[:3, :3], T0[:3, :3])
         tr = float(np.linalg.norm(T[:3, 3] - T0[:3, 3]))
         kept = after >= before
