@@ -33,7 +33,7 @@ from graffmatch.geometry.transforms import rotation_error_deg
 from graffmatch.lidar.extractor import LandmarkExtractor, LandmarkExtractorConfig
 from graffmatch.lidar.voxels import VoxelCloud
 from graffmatch.matcher import GraffMatchConfig, GraffMatcher, MatchResult
-from graffmatch.verification.evidence import point_overlaps, voxel_downsample
+from graffmatch.verification.evidence import point_overlaps, reach_shares, voxel_downsample
 from graffmatch.verification.verify import Evidence, evidence_for, scan_evidence
 from graffmatch.verification.view import set_coverage
 
@@ -278,7 +278,7 @@ class ScanMatcher:
         """Re-align a valid support-point answer on the scans (``scan_realign_m``), in place: the ICP pose replaces it
         when it puts at least as many source points within reach of the target as the answer did. ``overlap`` is then
         the re-aligned pose's own (support points); ``info`` keeps the answer (``T_support``) and the move."""
-        from graffmatch.registration.icp import icp_fitness, refine_icp
+        from graffmatch.registration.icp import refine_icp
 
         scans = self._scan_icp_points(source, target, source_points, target_points, source_cloud, target_cloud)
         if scans is None or min(len(scans[0]), len(scans[1])) < 10:
@@ -290,7 +290,7 @@ class ScanMatcher:
         T0 = np.asarray(result.T_target_source, dtype=np.float64)
         T, _fit, _rmse = refine_icp(ps, pt, T0, d, self.config.scan_realign_iterations, True, rc.normal_radius,
                                     normals, rc.relative_change, rc.relative_change)
-        before, after = (float(f) for f in icp_fitness(ps, pt, np.stack([T0, T]), d))
+        before, after = (float(f) for f in reach_shares(ps, pt, np.stack([T0, T]), d))
         rot = rotation_error_deg(T[:3, :3], T0[:3, :3])
         tr = float(np.linalg.norm(T[:3, 3] - T0[:3, 3]))
         kept = after >= before

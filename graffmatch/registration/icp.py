@@ -83,29 +83,6 @@ def refine_icp(
     return np.asarray(res.transformation, dtype=np.float64).copy(), float(res.fitness), float(res.inlier_rmse)
 
 
-def icp_fitness(source_points: ArrayLike, target_points: ArrayLike, T: ArrayLike,
-                max_distance: float) -> float | NDArray[np.float64]:
-    """Share of the source points that ``T`` puts within ``max_distance`` of a target point (ICP's fitness, computed
-    the same way for any transform, so a start and an ICP result compare like with like). ``T``: one (4, 4) -> float,
-    or (H, 4, 4) stacked -> (H,), with one KD-tree of the target for all."""
-    from scipy.spatial import cKDTree
-
-    Ts = np.asarray(T, dtype=np.float64)
-    single = Ts.ndim == 2
-    Ts = np.stack([check_transform(t, "T") for t in Ts.reshape(-1, 4, 4)])
-    S = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
-    G = np.asarray(target_points, dtype=np.float64).reshape(-1, 3)
-    S, G = S[np.all(np.isfinite(S), axis=1)], G[np.all(np.isfinite(G), axis=1)]
-    if len(S) == 0 or len(G) == 0:
-        out = np.zeros(len(Ts))
-    else:
-        tree = cKDTree(G)
-        out = np.array([np.mean(np.isfinite(tree.query(S @ t[:3, :3].T + t[:3, 3], k=1,
-                                                         distance_upper_bound=float(max_distance))[0]))
-                        for t in Ts])
-    return float(out[0]) if single else out
-
-
 def matched_support_points(
     source: LandmarkSet, target: LandmarkSet, associations: ArrayLike
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:

@@ -477,6 +477,24 @@ def point_overlap(
     return float(parts[0]), float(parts[1])
 
 
+def reach_shares(source_points: NDArray, target_points: NDArray, Ts: NDArray, radius: float) -> NDArray[np.float64]:
+    """(H,) share of the source points that each of the (H, 4, 4) ``Ts`` puts strictly within ``radius`` of a target
+    point: ICP's fitness, counted the same way for any transform (a start and an ICP result compare like with like),
+    in one compiled pass over a cell hash of the target (a KD-tree when the coordinates do not fit it)."""
+    S = np.asarray(source_points, dtype=np.float64).reshape(-1, 3)
+    G = np.asarray(target_points, dtype=np.float64).reshape(-1, 3)
+    S = np.ascontiguousarray(S[np.all(np.isfinite(S), axis=1)])
+    G = np.ascontiguousarray(G[np.all(np.isfinite(G), axis=1)])
+    Ts = np.ascontiguousarray(Ts, dtype=np.float64).reshape(-1, 4, 4)
+    if len(S) == 0 or len(G) == 0:
+        return np.zeros(len(Ts))
+    h = CellHash(G, float(radius))
+    if h.ok:
+        return h.hits(S, Ts) / len(S)
+    tree = cKDTree(G)
+    return np.array([np.mean(tree.query(S @ T[:3, :3].T + T[:3, 3], k=1)[0] < radius) for T in Ts])
+
+
 def _point_overlap_reference(
     source: SupportCloud, target: SupportCloud, T_target_source: NDArray[np.float64], inlier_m: float
 ) -> tuple[float, float]:

@@ -12,8 +12,7 @@ import pytest
 from graffmatch.datasets.folder import KittiFolder
 from graffmatch.geometry.transforms import transform_errors
 from graffmatch.pipeline import ScanMatcher, ScanMatcherConfig
-from graffmatch.registration.icp import icp_fitness
-from graffmatch.verification.evidence import point_overlaps
+from graffmatch.verification.evidence import point_overlaps, reach_shares
 from graffmatch.verification.verify import evidence_for
 
 
@@ -83,8 +82,8 @@ def test_realignment_never_lowers_the_fitness(courtyard) -> None:
         res = _match(scans, q, m, 1.0)
         Sc, Tc = scans[q][1], scans[m][1]
         T0 = np.asarray(res.info.get("T_support", res.T_target_source))
-        assert icp_fitness(Sc.points, Tc.points, res.T_target_source, 1.0) >= icp_fitness(Sc.points, Tc.points, T0,
-                                                                                          1.0) - 1e-12
+        after, before = reach_shares(Sc.points, Tc.points, np.stack([res.T_target_source, T0]), 1.0)
+        assert after >= before
 
 
 def test_same_inputs_same_pose(courtyard) -> None:
@@ -93,10 +92,15 @@ def test_same_inputs_same_pose(courtyard) -> None:
     assert np.array_equal(a.T_target_source, b.T_target_source)
 
 
-def test_icp_fitness_counts_points_within_reach(rng) -> None:
-    P = rng.uniform(-5, 5, (200, 3))
-    T = np.eye(4)
-    assert icp_fitness(P, P, T, 0.01) == 1.0
-    T[0, 3] = 100.0
-    assert icp_fitness(P, P, T, 1.0) == 0.0
-    assert icp_fitness(np.zeros((0, 3)), P, np.eye(4), 1.0) == 0.0
+def test_reach_shares_count_points_within_reach(rng) -> None:
+    """Shares against a brute-force count, for the cell hash and for far (UTM-size) coordinates (the KD-tree)."""
+    S, G = rng.uniform(-5, 5, (300, 3)), rng.uniform(-5, 5, (400, 3))
+    Ts = np.repeat(np.eye(4)[None], 3, axis=0)
+    Ts[1, :3, 3] = (0.3, -0.2, 0.1)
+    Ts[2, 0, 3] = 100.0
+    for shift in (0.0, 5e6):
+        Sx, Gx, Tx = S + shift, G + shift, Ts.copy()
+        want = [np.mean(np.linalg.norm((Sx @ T[:3, :3].T + T[:3, 3])[:, None] - Gx[None], axis=2).min(axis=1) < 0.5)
+                for T in Tx]
+        np.testing.assert_allclose(reach_shares(Sx, Gx, Tx, 0.5), want, atol=1e-12)
+    assert reach_shares(np.zeros((0, 3)), G, Ts, 1.0).tolist() == [0.0, 0.0, 0.0]
