@@ -810,9 +810,18 @@ def _register_kernel(bounds: NDArray[np.int64], w: Array, ts: NDArray[np.int64],
                     if ts[i] == 0:
                         continue
                     dot = _dot_r(Rc[c], ds[i], dt[i])
-                    bound = _DOT_MIN if well else _norm_cross(ds[i], u0) * _norm_cross(dt[i], v0) + _DOT_MIN
-                    if abs(dot) <= bound:
-                        frag |= 16
+                    if well:
+                        if abs(dot) <= _DOT_MIN:
+                            frag |= 16
+                    else:
+                        # a rank-deficient seed fixes only R u0 = v0: any rotation about v0 is as good, and
+                        # dt . R ds ranges over center +- |ds x u0| |dt x v0|. The sign is the kernel's own
+                        # arbitrary choice unless that whole range lies on one side of zero (seed 38 of
+                        # tests/registration/test_batch_equivalence.py: dot 0.67 here, -0.62 by LAPACK).
+                        center = (ds[i, 0] * u0[0] + ds[i, 1] * u0[1] + ds[i, 2] * u0[2]) * (
+                            dt[i, 0] * v0[0] + dt[i, 1] * v0[1] + dt[i, 2] * v0[2])
+                        if abs(center) <= _norm_cross(ds[i], u0) * _norm_cross(dt[i], v0) + _DOT_MIN:
+                            frag |= 16
                     signs[c, i - lo] = -1.0 if dot < 0 else 1.0
         # refine: correlation of signed directions and centred positions, Kabsch, re-sign
         # (candidates whose signs coincide share the result: copied, not recomputed)
