@@ -8,7 +8,9 @@ pydantic model, written next to every result.
 With raw scans at hand, ``evidence='support_then_scans'`` (the default) verifies again on the scans' non-ground
 voxel clouds (the extractor's ``last_cloud``) when the landmarks' support points give no valid
 answer and both scans are whole views (``scan_fallback_min_view``), at thresholds chosen for that
-evidence on whole scans (``VerificationConfig.scans``). The winner is refined by ICP on the
+evidence on whole scans (``VerificationConfig.scans``). A valid answer of the support points is re-aligned by ICP on
+the scans' non-ground clouds (``scan_realign_m``): support points cannot pin the pose of real scans 8-16 m apart
+(courtyard answers 1-2 m off), the scans can. With ``refinement.method='icp'`` the winner is refined by ICP on the
 voxel-downsampled non-ground scans (or on the matched landmarks' points). ``register`` hands ICP the extractor's own voxel cloud
 of each scan with its normals (``LandmarkExtractor.last_cloud``), so nothing is voxelised or
 normal-estimated twice (``refine`` called with raw scans only re-voxelises them). A refinement
