@@ -196,8 +196,9 @@ class ScanMatcher:
         from graffmatch.registration.icp import matched_support_points, refine_icp
 
         t0 = time.perf_counter()
-        scans = self._scan_icp_points(source, target, source_points, target_points, source_cloud, target_cloud)
-        if rc.points == "scans" and scans is not None:
+        scans = (self._scan_icp_points(source, target, source_points, target_points, source_cloud, target_cloud)
+                 if rc.points == "scans" else None)
+        if scans is not None:
             ps, pt, normals = scans
             used = "scans"  # their voxelised non-ground points (the extractor's, when given)
         else:
