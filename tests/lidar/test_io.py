@@ -413,3 +413,33 @@ def test_bad_scale_is_rejected(tmp_path: Path, cloud: np.ndarray, bad) -> None:
         read_points(path, scale=bad)
     with pytest.raises(InvalidInputError, match="scale"):
         read_scan(path, scale=bad)
+
+
+def _implausible_reference(xyz: np.ndarray, limit: float) -> np.ndarray:
+    """The numpy expression the compiled row check replaced (its specification)."""
+    from graffmatch.lidar import io
+
+    with np.errstate(invalid="ignore", over="ignore"):
+        a = np.abs(xyz.astype(np.float64, copy=False))
+        m = a.max(axis=1) if a.shape[0] else np.zeros(0)
+        bad = ~np.isfinite(m) | (m > limit) | ((m > 0) & (m < io.SENSOR_MIN_RANGE))
+        bad |= ((a > 0) & (a < io._F32_TINY)).any(axis=1)
+    return bad
+
+
+def test_implausible_rows_kernel_equals_its_numpy_specification():
+    """On 400 random blocks (float32 and float64, scales 1e-3..1e6) salted with NaN, +-Inf, zeros, denormals, tiny
+    and huge values, the compiled row check flags exactly the rows the numpy expression does."""
+    from graffmatch.lidar import io
+
+    rng = np.random.default_rng(7)
+    specials = (np.nan, np.inf, -np.inf, 0.0, 1e-40, -1e-39, 1e-310, 1e5, 1e-3, -0.0)
+    for k in range(400):
+        dt = (np.float32, np.float64)[k % 2]
+        X = rng.normal(0, 10 ** rng.uniform(-3, 6), (int(rng.integers(0, 300)), 3)).astype(dt)
+        for v in specials:
+            if len(X):
+                X[rng.integers(0, len(X), 4), rng.integers(0, 3)] = v
+        for limit in (io.SENSOR_FRAME_LIMIT, 1e8):
+            assert np.array_equal(io._implausible_rows(X, limit), _implausible_reference(X, limit)), (k, limit)
+        assert np.array_equal(io._implausible_rows(X[:, :3][::2], 1e8), _implausible_reference(X[::2], 1e8))
