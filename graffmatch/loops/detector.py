@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
 
@@ -29,6 +30,7 @@ from graffmatch.loops.database import (
 )
 from graffmatch.loops.descriptor import DescriptorConfig, landmark_descriptor
 from graffmatch.loops.local_map import local_map_at
+from graffmatch.loops.place_check import PlaceCloud, place_cloud, remeasure, scan_place_cloud
 from graffmatch.loops.plan import verify_query
 from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_check_many, quick_index
 from graffmatch.loops.retrieval import RetrievalConfig, eligible_count, make_retriever
@@ -70,8 +72,14 @@ class LoopDetectorConfig(BaseModel):
 class LoopDetector:
     """Scan-by-scan loop closure detection over a growing landmark database."""
 
-    def __init__(self, config: LoopDetectorConfig | None = None) -> None:
+    def __init__(self, config: LoopDetectorConfig | None = None, scans: Any = None) -> None:
+        """``scans``: the added scans, indexable in the order they were added (the dataset being played, or a list of
+        point arrays): ``scans[i]`` is read when the place check re-measures a loop estimated just beyond
+        ``verification.max_translation_m`` (:mod:`.place_check`); without it such a loop stays refused, because the
+        database keeps landmarks only."""
         self.config = config or LoopDetectorConfig()
+        self.scans = scans
+        self._place: OrderedDict[int, PlaceCloud] = OrderedDict()
         self.db = LandmarkDatabase()
         self.retriever = make_retriever(self.config.retrieval)
         # One configured scan-to-scan path (graffmatch.pipeline.ScanMatcher): the same extractor
@@ -234,7 +242,19 @@ class LoopDetector:
             if cfg.verification.scan_cloud_below > 0:  # the raw-scan pass of landmark-poor pairs
                 scan_pass(src, tgt, decode_points(encode_points(P_s)), decode_points(encode_points(P_t)),
                           self.matcher, cfg.verification)
+        if cfg.verification.place_check and cfg.verification.max_translation_m is not None:
+            # the place check's ICP: Open3D's first registration call in a process takes ~1 s
+            P = place_cloud(np.random.default_rng(1).uniform([-20, -20, 0], [20, 20, 6], (2000, 3)))
+            remeasure(P, P, np.eye(4))
         return time.perf_counter() - t0
+
+    def place_cloud(self, i: int) -> PlaceCloud:
+        """Scan i's place-check cloud from ``scans`` (the last few kept)."""
+        if i not in self._place:
+            self._place[i] = scan_place_cloud(self.scans, i)
+            if len(self._place) > 64:
+                self._place.popitem(last=False)
+        return self._place[i]
 
     def _pose_of(self, i: int) -> NDArray | None:
         return self._poses[i] if 0 <= i < len(self._poses) else None
@@ -299,6 +319,8 @@ class LoopDetector:
             query, list(zip(idx.tolist(), dist.tolist(), strict=True)), self.landmarks,
             self.quick_index, self.matcher, self.config.verification, self.config.quick, self.scan_of, self._pose_of,
             self.db.landmarks.__getitem__, self.own_quick_index,
+            self.place_cloud if self.scans is not None and self.config.verification.place_check
+            else None,
         )
         recs = self._consistent(query, recs)
         out = []

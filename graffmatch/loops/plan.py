@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from graffmatch.geometry.landmarks import LandmarkSet
+from graffmatch.loops.place_check import PlaceCloud, run_place_check
 from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_check_many
 from graffmatch.loops.verify import VerificationConfig, prior_contrast_of, verify_candidate
 from graffmatch.matcher import GraffMatcher
@@ -135,6 +136,7 @@ def verify_query(
     odometry_of: Callable[[int], NDArray | None] | None = None,
     own_of: Callable[[int], LandmarkSet] | None = None,
     own_quick_of: Callable[[int], QuickIndex] | None = None,
+    place_cloud_of: Callable[[int], PlaceCloud | None] | None = None,
 ) -> list[dict]:
     """Pre-screen and verify the retrieved candidates of one query; one record a candidate.
 
@@ -152,7 +154,9 @@ def verify_query(
     through the first screen at the odometry's relative pose (:func:`screens_in`). ``own_of(i)``: scan i's own
     landmarks when ``landmarks_of`` gives local maps: with ``local_map_on_points_only`` a pair of which a map lacks
     evidence points is quick-checked (``own_quick_of``: the own maps' indices) and verified on the two own maps
-    instead (:func:`pair_maps`), so the pre-screen reads the maps the verifier reads.
+    instead (:func:`pair_maps`), so the pre-screen reads the maps the verifier reads. ``place_cloud_of(i)``: scan i's
+    :func:`.place_check.place_cloud` (None: unreadable): a query left without a loop because the place radius alone
+    refused its verified candidates gets them re-measured on the scans (:func:`.place_check.run_place_check`).
     """
     recs: list[dict] = []
     for rank, (j, dist) in enumerate(candidates):
@@ -215,10 +219,14 @@ def verify_query(
             rec.update({k: v[k] for k in ("scan_valid", "scan_confidence", "scan_n_agreeing", "scan_overlap",
                                           "scan_message", "scan_origin", "scan_seconds")})
             rec["scan_T"] = None if v["scan_T"] is None else np.asarray(v["scan_T"]).ravel().tolist()
+        if "radius_T" in v:  # refused by the place radius alone (loops/place_check.py)
+            rec.update(radius_confidence=v["radius_confidence"], radius_T=np.asarray(v["radius_T"]).ravel().tolist())
         if v.get("on_scans"):
             rec["on_scans"] = True
             rec["support_T"] = None if v["support_T"] is None else np.asarray(v["support_T"]).ravel().tolist()
         return v["confidence"]
 
     run_plan(order, extra, config, verify, screen if T_odo else None)
+    if place_cloud_of is not None:
+        run_place_check(query, recs, config, place_cloud_of)
     return recs

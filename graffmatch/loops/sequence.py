@@ -53,6 +53,7 @@ from graffmatch.loops.descriptor import landmark_descriptor
 from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig, warm_up_once
 from graffmatch.loops.io import loop_edges, write_g2o, write_loops_csv
 from graffmatch.loops.local_map import attach_local_maps
+from graffmatch.loops.place_check import scan_place_cloud
 from graffmatch.loops.plan import verify_query
 from graffmatch.loops.quickcheck import QuickIndex, quick_index
 from graffmatch.loops.retrieval import eligible_count
@@ -63,6 +64,7 @@ LANDMARK_DIR = "landmarks"
 LOCAL_MAP_DIR = "local_maps"  # the local maps of landmark-poor scans (loops/local_map.py), rewritten every run
 QUERIES_FILE = "queries.jsonl"
 QUERIES_META = "queries.meta.json"
+PLACE_CACHE_SCANS = 64  # place-check clouds a worker keeps (~100 kB each; few scans are ever re-measured)
 
 
 def _stamp(path: Path | None) -> str:
@@ -134,6 +136,7 @@ class _ScanCache:
         self.quick: OrderedDict[int, QuickIndex] = OrderedDict()
         self.own_quick: OrderedDict[int, QuickIndex] = OrderedDict()  # own maps' of scans with a local map
         self.scans: OrderedDict[int, Any] = OrderedDict()
+        self.place: OrderedDict[int, Any] = OrderedDict()  # the place check's scan clouds (loops/place_check.py)
 
     def reset(self, key: tuple[str, str]) -> None:
         if key != self.key:
@@ -143,14 +146,15 @@ class _ScanCache:
             self.quick.clear()
             self.own_quick.clear()
             self.scans.clear()
+            self.place.clear()
 
-    def get(self, store: OrderedDict, i: int, make: Callable[[], Any]) -> Any:
-        """``store[i]``, made by ``make()`` on a miss."""
+    def get(self, store: OrderedDict, i: int, make: Callable[[], Any], limit: int | None = None) -> Any:
+        """``store[i]``, made by ``make()`` on a miss (at most ``limit`` entries, default ``max_scans``)."""
         if i in store:
             store.move_to_end(i)
             return store[i]
         v = store[i] = make()
-        if len(store) > self.max_scans:
+        if len(store) > (self.max_scans if limit is None else limit):
             store.popitem(last=False)
         return v
 
@@ -163,10 +167,12 @@ def _verify_task(args: tuple) -> list[dict]:
 
     ``args``: out_dir, database key, config JSON, the chunk's (query, candidates), whether to warm up
     the point kernels, the odometry poses of the chunk's scans ({scan: 4x4}, or None), and the scans
-    matched on their local maps with those maps' key (``(frozenset(), "")`` without)."""
+    matched on their local maps with those maps' key (``(frozenset(), "")`` without), and the dataset the place check
+    reads the scans from (None: no place check)."""
     out_dir, database_key, config_json, chunk, warm_points = args[:5]
     poses = args[5] if len(args) > 5 else None
     local_ids, local_key = args[6] if len(args) > 6 else (frozenset(), "")
+    dataset = args[7] if len(args) > 7 else None
     config = LoopDetectorConfig.model_validate_json(config_json)
     det = LoopDetector(config)
     _CACHE.reset((out_dir, database_key + config.quick.model_dump_json() + local_key))
@@ -200,6 +206,10 @@ def _verify_task(args: tuple) -> list[dict]:
     def own_qi(i: int) -> QuickIndex:  # a pair verified on the own maps is screened on them (plan.on_own_maps)
         return qi(i) if i not in local_ids else indexed(_CACHE.own_quick, i, own)
 
+    def place(i: int):  # read when the place check needs scan i: inside the query's clock
+        return _CACHE.get(_CACHE.place, i, lambda: scan_place_cloud(dataset, i), PLACE_CACHE_SCANS)
+
+    place_of = place if dataset is not None and config.verification.place_check else None
     records = []
     for q, cands in chunk:
         for j in [q, *(c for c, _ in cands)]:  # load and index before the query's clock starts
@@ -211,7 +221,7 @@ def _verify_task(args: tuple) -> list[dict]:
         t0, c0 = time.perf_counter(), time.process_time()
         recs = verify_query(q, cands, lm, qi, det.matcher, config.verification, config.quick,
                             scan if config.verification.scan_cloud_below > 0 else None,
-                            None if poses is None else poses.get, own, own_qi)
+                            None if poses is None else poses.get, own, own_qi, place_of)
         records.append({"query": int(q), "candidates": recs, "verify_s": time.perf_counter() - t0, "verify_cpu_s": time.process_time() - c0})
     if records:
         records[-1]["index_s"] = index_s[0]
@@ -480,7 +490,7 @@ def run_loops(
             try:
                 warm_points = sum(ls.points is not None for ls in db.landmarks) >= 2  # a pair on points
                 tasks = [(str(out), stats["database_key"], cfg_json, c, warm_points,
-                          None if odometry is None else _chunk_poses(odometry, c), (local_ids, local_key))
+                          None if odometry is None else _chunk_poses(odometry, c), (local_ids, local_key), dataset)
                          for c in chunks]
                 for _, recs in ex.imap_unordered(_verify_task, tasks):
                     for rec in recs:

@@ -111,6 +111,17 @@ SCANS_MAX_CONFLICT: float | None = 0.12
 LOCAL_MAP_BELOW = 6
 LOCAL_MAP_FRAMES = 5
 LOCAL_MAP_ON_POINTS_ONLY = True
+#: The place check (loops/place_check.py, session 23; opt-in): a query whose verified candidates the place radius
+#: alone refused gets those estimated at most PLACE_CHECK_BAND_M beyond the radius less place_margin_m re-measured by
+#: ICP on the two scans (at most PLACE_CHECK_MAX, nearest first); one is a loop when the re-measured distance is within
+#: the radius less PLACE_CHECK_MARGIN_M and ICP moved the verified pose by at most 0.5 m / 2 deg.
+#: PLACE_CHECK_MARGIN_M: the calibration drives' largest |re-measured - true distance| of 1,226 pose-right candidates
+#: (0.056 m), rounded up to 5 cm (docs/loops.md session 23). Off by default: reading and re-measuring two scans costs
+#: 45-110 ms a checked query, +3.2 ms a query on downtown-s1 at k = 5, over the 20 ms target's margin.
+PLACE_CHECK = False
+PLACE_CHECK_BAND_M = 0.25
+PLACE_CHECK_MARGIN_M = 0.1
+PLACE_CHECK_MAX = 2
 
 
 class VerificationConfig(BaseModel):
@@ -142,6 +153,27 @@ class VerificationConfig(BaseModel):
         "max_translation_m minus this [m]; the estimate has an error of centimetres to decimetres, "
         "so a loop estimated just inside the radius may lie just outside it (chosen on the "
         "calibration drives, bench/loops_calibration.py)",
+    )
+    place_check: bool = Field(
+        PLACE_CHECK,
+        description="with max_translation_m and the scans at hand (graffmatch loops, the benchmark, a LoopDetector "
+        "given its scans): a query whose verified candidates only the place radius refused gets those estimated at "
+        "most place_check_band_m beyond max_translation_m minus place_margin_m re-measured by ICP on the two scans "
+        "(loops/place_check.py); off by default (its cost, docs/loops.md session 23)",
+    )
+    place_check_band_m: float = Field(PLACE_CHECK_BAND_M, ge=0, description="see place_check [m]")
+    place_check_margin_m: float = Field(
+        PLACE_CHECK_MARGIN_M,
+        ge=0,
+        description="a re-measured candidate is a loop when its ICP distance is at most max_translation_m minus this "
+        "[m] (the ICP distance's largest error on the calibration drives, rounded up)",
+    )
+    place_check_max: int = Field(PLACE_CHECK_MAX, ge=1, description="re-measure at most this many candidates a query")
+    place_check_max_move_m: float = Field(
+        0.5, gt=0, description="refuse a re-measured candidate whose ICP moved the verified pose farther than this [m]"
+    )
+    place_check_max_move_deg: float = Field(
+        2.0, gt=0, description="... or turned it by more than this [deg]"
     )
     few_landmarks_min_agreeing: int = Field(
         FEW_LANDMARKS_MIN_AGREEING,
@@ -534,6 +566,8 @@ def verify_candidate(
 
     Returns a dict: T_match_query (or None), confidence, overlap, n_associations, n_agreeing,
     matcher_valid, matcher_confidence, on_points (both sets carry evidence points), message, seconds.
+    With a place radius, a candidate that only the radius refused also gets ``radius_confidence`` (its confidence
+    inside the radius) and ``radius_T`` (the pose it refers to), for the place check (:mod:`.place_check`).
     With both scan clouds given (landmark-poor scans, ``scan_cloud_below``) and the landmark rule
     not accepting, the pair is verified again on them (:func:`scan_pass`, its fields added); when
     :func:`scans_loop_confidence` accepts, T_match_query and confidence are the scan pass's
@@ -575,6 +609,10 @@ def verify_candidate(
             bool(res.valid), out["matcher_confidence"], n_agree, overlap,
             float(np.linalg.norm(T[:3, 3])), config, on_points,
         )
+        if config.max_translation_m is not None and out["confidence"] < config.min_confidence:
+            inside = loop_confidence(bool(res.valid), mconf, n_agree, overlap, 0.0, config, on_points)
+            if inside >= config.min_confidence:
+                out.update(radius_confidence=inside, radius_T=T)
     if query_scan is not None and candidate_scan is not None and out["confidence"] < config.min_confidence:
         sp = scan_pass(query, candidate, query_scan, candidate_scan, matcher, config)
         out.update(sp)
@@ -584,6 +622,11 @@ def verify_candidate(
             sp["scan_origin"] == "points")
         if sconf >= config.min_confidence and sconf > out["confidence"]:
             out.update(support_T=out["T_match_query"], T_match_query=sT, confidence=sconf, on_scans=True)
+        elif sT is not None and config.max_translation_m is not None:
+            inside = scans_loop_confidence(sp["scan_valid"], sp["scan_confidence"], sp["scan_n_agreeing"], 0.0, config,
+                                           sp["scan_origin"] == "points")
+            if inside >= config.min_confidence and inside > out.get("radius_confidence", 0.0):
+                out.update(radius_confidence=inside, radius_T=sT)
     out["seconds"] = time.perf_counter() - t0
     return out
 

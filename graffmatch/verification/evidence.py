@@ -206,7 +206,7 @@ def _occupancy_overlap_reference(
 def voxel_downsample(points: NDArray, voxel: float, max_points: int) -> NDArray[np.float64]:
     """One point per occupied voxel (the first, deterministic), then an even stride to the cap."""
     P = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-    ok, idx = _first_per_voxel(P, float(voxel))
+    ok, idx = first_per_voxel(P, float(voxel))
     if ok:  # one compiled pass (below: its numpy specification, for coordinates it cannot key)
         P = P[idx]
         if len(P) > max_points:
@@ -230,7 +230,7 @@ def voxel_downsample(points: NDArray, voxel: float, max_points: int) -> NDArray[
 
 
 @nb.njit(cache=True)
-def _first_per_voxel(P: NDArray[np.float64], voxel: float) -> tuple[bool, NDArray[np.int64]]:
+def first_per_voxel(P: NDArray[np.float64], voxel: float) -> tuple[bool, NDArray[np.int64]]:
     """Rows of the finite points that are the first in their voxel, in row order (what
     :func:`voxel_downsample`'s numpy path keeps), or (False, _) when a voxel index or the
     voxel box is too large for int64 keys (then that path answers)."""
