@@ -7,7 +7,8 @@ calibration drives). A true loop 4.75-5 m apart is therefore never reported. Poi
 started from the verified pose, measures the distance to centimetres (calibration drives, docs/loops.md session
 23), so a query whose only verified candidates were refused by the radius alone gets them re-measured here, the
 nearest estimate first, and one is a loop when the re-measured distance lies within the radius less the smaller
-``place_check_margin_m``.
+``place_check_margin_m``. Only estimates at most ``place_check_band_m`` beyond the gate are re-measured: on the
+calibration drives none estimated farther was accepted (docs/loops.md session 23, rule v2).
 
 The check never makes a candidate a loop that the landmark rule did not verify: it only replaces the distance
 (and the pose, by the ICP's). ICP that moves the verified pose by more than ``place_check_max_move_m`` /
@@ -127,14 +128,15 @@ def remeasure(query_cloud: PlaceCloud, match_cloud: PlaceCloud, T_match_query: N
 
 def place_check_candidates(recs: list[dict], config: VerificationConfig) -> list[dict]:
     """The records the check re-measures: none when a record is already a loop; else the verified ones refused by
-    the place radius alone (``radius_confidence`` reaches ``min_confidence``) whose estimate lies within
-    ``place_check_band_m`` beyond the radius less ``place_margin_m``, the nearest first, at most ``place_check_max``."""
+    the place radius alone (``radius_confidence`` reaches ``min_confidence``) whose estimate lies at most
+    ``place_check_band_m`` beyond the radius less ``place_margin_m`` (the gate), the nearest first, at most
+    ``place_check_max``."""
     if not config.place_check or config.max_translation_m is None:
         return []
     if any(r.get("confidence", 0.0) >= config.min_confidence for r in recs):
         return []
     lo = config.max_translation_m - config.place_margin_m
-    hi = config.max_translation_m + config.place_check_band_m
+    hi = lo + config.place_check_band_m
     out = []
     for r in recs:
         T = r.get("radius_T")

@@ -55,7 +55,7 @@ def _scans(distance: float, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def _config(**kw) -> VerificationConfig:
-    base = {"max_translation_m": 5.0, "place_margin_m": 0.25, "place_check": True, "place_check_band_m": 0.25,
+    base = {"max_translation_m": 5.0, "place_margin_m": 0.25, "place_check": True, "place_check_band_m": 0.5,
             "place_check_margin_m": 0.1}
     return VerificationConfig(**{**base, **kw})
 
@@ -118,14 +118,17 @@ def test_place_check_refuses_a_pose_the_scans_move_too_far():
 
 
 def test_candidates_nearest_first_capped_and_none_when_a_loop_exists():
-    """Only records refused by the radius alone and estimated in (4.75, 5.25] are re-measured, nearest first, at
-    most place_check_max; a query that already has a loop, or a config without the check, re-measures none."""
+    """Only records refused by the radius alone and estimated in (4.75, 5.25] (a 0.5 m band from the 4.75 m gate) are
+    re-measured, nearest first, at most place_check_max; the default 0.2 m band stops at 4.95 m; a query that already
+    has a loop, or a config without the check, re-measures none."""
     cfg = _config(place_check_max=2)
     T = [_pose(0.0, (d, 0.0, 0.0)) for d in (5.2, 4.8, 5.3, 4.7, 5.0)]
     recs = [_record(i, t, rank=i) for i, t in enumerate(T)]
     recs.append({**_record(9, T[1], rank=5), "radius_confidence": 0.3})  # below min_confidence inside the radius too
     assert [r["match"] for r in place_check_candidates(recs, cfg)] == [1, 4]
     assert [r["match"] for r in place_check_candidates(recs, cfg.model_copy(update={"place_check_max": 5}))] == [1, 4, 0]
+    assert [r["match"] for r in place_check_candidates(recs, cfg.model_copy(update={"place_check_band_m": 0.2}))] == [1]
+    assert VerificationConfig().place_check_band_m == 0.2
     assert place_check_candidates(recs, cfg.model_copy(update={"place_check": False})) == []
     assert place_check_candidates(recs, cfg.model_copy(update={"max_translation_m": None})) == []
     assert place_check_candidates([*recs, {**_record(8, T[3]), "confidence": 0.8}], cfg) == []
