@@ -189,7 +189,8 @@ def test_run_loops_re_measures_a_loop_estimated_beyond_the_radius(tmp_path):
 
     from graffmatch.datasets.registry import open_dataset
     from graffmatch.datasets.simulator import SUITES, TrajectoryConfig, simulate_dataset
-    from graffmatch.loops import LoopDetectorConfig
+    from graffmatch.loops import LoopDetector, LoopDetectorConfig
+    from graffmatch.loops.database import load_landmarks
     from graffmatch.loops.io import read_loops_csv
     from graffmatch.loops.sequence import run_loops
 
@@ -212,12 +213,15 @@ def test_run_loops_re_measures_a_loop_estimated_beyond_the_radius(tmp_path):
     lc = max(near, key=lambda c: np.linalg.norm(c.T_match_query[:3, 3]))
     radius = float(np.linalg.norm(lc.T_match_query[:3, 3])) + 0.2
 
+    def config(check: bool) -> LoopDetectorConfig:
+        c = cfg.model_copy(deep=True)
+        c.verification.max_translation_m, c.verification.place_check = radius, check
+        return c
+
     def run(check: bool) -> tuple[list, dict]:
         out = tmp_path / f"check{check}"
         shutil.copytree(tmp_path / "any" / "landmarks", out / "landmarks")
-        c = cfg.model_copy(deep=True)
-        c.verification.max_translation_m, c.verification.place_check = radius, check
-        run_loops(ds, out, c, workers=1)
+        run_loops(ds, out, config(check), workers=1)
         recs = {json.loads(line)["query"]: json.loads(line) for line in open(out / "queries.jsonl")}
         return read_loops_csv(out / "loops.csv"), recs
 
@@ -234,3 +238,15 @@ def test_run_loops_re_measures_a_loop_estimated_beyond_the_radius(tmp_path):
     assert {(c.query, c.match) for c in off} <= {(c.query, c.match) for c in on}
     for c in on:
         assert np.linalg.norm(np.linalg.solve(P[c.match], P[c.query])[:3, 3]) <= radius
+
+    # online: the detector given the drive's scans finds the same loop with the same pose
+    det = LoopDetector(config(True), scans=ds)
+    online = {}
+    for i in range(len(ds)):
+        for c in det.add(load_landmarks(tmp_path / "any" / "landmarks" / f"{i:06d}.npz"), timestamp=float(ds.timestamps[i])):
+            online[(c.query, c.match)] = c
+    assert np.allclose(online[(got.query, got.match)].T_match_query, got.T_match_query, atol=1e-6)
+    blind = LoopDetector(config(True))  # without the scans the check cannot run
+    for i in range(lc.query + 1):
+        res = blind.add(load_landmarks(tmp_path / "any" / "landmarks" / f"{i:06d}.npz"), timestamp=float(ds.timestamps[i]))
+    assert not res
