@@ -94,7 +94,11 @@ def scan_place_cloud(scans: Any, i: int) -> PlaceCloud:
     subset = getattr(scans, "points_subset", None)
     if subset is not None:
         return place_cloud(subset(i, _voxel_rows))
-    scan = scans[i]
+    try:
+        scan = scans[i]
+    except (IndexError, KeyError, TypeError) as exc:
+        raise InvalidInputError(f"place check: scan {i} is not in the scans given ({type(scans).__name__}): "
+                                f"they must hold every added scan, in order ({exc})") from None
     return place_cloud(getattr(scan, "points", scan))
 
 

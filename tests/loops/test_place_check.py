@@ -154,8 +154,14 @@ def test_place_check_is_deterministic_and_reads_no_scan_it_does_not_need():
 
 
 def test_place_cloud_names_bad_input():
+    from graffmatch.loops.place_check import scan_place_cloud
+
     with pytest.raises(InvalidInputError, match="place check"):
         place_cloud(np.zeros((10, 2)))
+    with pytest.raises(InvalidInputError, match="scan 3 is not in the scans given"):
+        scan_place_cloud([np.zeros((20, 3))] * 2, 3)
+    with pytest.raises(InvalidInputError, match="scan 0 is not in the scans given"):
+        scan_place_cloud(None, 0)
     with pytest.raises(InvalidInputError, match="place check"):
         place_cloud(np.array(["a", "b", "c"]).reshape(1, 3))
 
