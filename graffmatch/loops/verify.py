@@ -118,7 +118,8 @@ LOCAL_MAP_ON_POINTS_ONLY = True
 #: PLACE_CHECK_BAND_M (rule v2): every acceptance of the calibration run was estimated within 0.2 m of the gate.
 #: PLACE_CHECK_MARGIN_M: the calibration drives' largest |re-measured - true distance| of 1,226 pose-right candidates
 #: (0.056 m), rounded up to 5 cm (docs/loops.md session 23). Off by default: reading and re-measuring two scans costs
-#: 45-110 ms a checked query, +3.2 ms a query on downtown-s1 at k = 5, over the 20 ms target's margin.
+#: 45-110 ms a checked query; on downtown-s1 at k = 5 (every 4th query) +1.6, +1.2, -0.4 ms a query in three
+#: interleaved pairs, over the 0.94 ms left to the 20 ms target (session 20).
 PLACE_CHECK = False
 PLACE_CHECK_BAND_M = 0.2
 PLACE_CHECK_MARGIN_M = 0.1
