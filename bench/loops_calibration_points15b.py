@@ -402,7 +402,7 @@ def grid17m(args, cfg, drives: list, t0: float) -> None:
     rerun on this code at the matcher's bar (``--grid 17``'s caches). Session 8's rule (docs/loops.md session 17): the
     smallest margin with no accepted loop beyond the radius on any drive, no accepted loop that is not an e2e TP and no
     wrong scan-rule accept in the stress set."""
-    from graffmatch.loops.verify import SCANS_SCREEN_MIN_RATIO, SCANS_SKIP_MAX
+    from graffmatch.loops.verification_config import SCANS_SCREEN_MIN_RATIO, SCANS_SKIP_MAX
 
     base_v = policy_base(cfg)
     cons = screen_contrasts(args, cfg, drives)

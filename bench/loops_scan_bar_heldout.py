@@ -41,7 +41,7 @@ def main() -> None:
     from graffmatch.datasets.registry import open_dataset
     from graffmatch.loops.database import load_landmarks, load_scan_cloud
     from graffmatch.loops.sequence import prepare_drive, read_queries, run_loops
-    from graffmatch.loops.verify import SCANS_MAX_CONFLICT, SCANS_POINTS_MIN_AGREEING
+    from graffmatch.loops.verification_config import SCANS_MAX_CONFLICT, SCANS_POINTS_MIN_AGREEING
 
     t0 = time.perf_counter()
     cfg = run_config(12)

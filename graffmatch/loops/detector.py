@@ -34,13 +34,8 @@ from graffmatch.loops.place_check import PlaceCloud, place_cloud, remeasure, sca
 from graffmatch.loops.plan import verify_query
 from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_check_many, quick_index
 from graffmatch.loops.retrieval import RetrievalConfig, eligible_count, make_retriever
-from graffmatch.loops.verify import (
-    LOOP_POINT_HYPOTHESES,
-    LoopClosure,
-    VerificationConfig,
-    scan_pass,
-    verify_candidate,
-)
+from graffmatch.loops.verification_config import LOOP_POINT_HYPOTHESES, VerificationConfig
+from graffmatch.loops.verify import LoopClosure, scan_pass, verify_candidate
 from graffmatch.matcher import GraffMatchConfig
 from graffmatch.pipeline import ScanMatcher, ScanMatcherConfig
 from graffmatch.verification.evidence import evidence_points as matcher_evidence_points
@@ -49,7 +44,7 @@ from graffmatch.verification.evidence import voxel_downsample
 
 def loop_matcher_config() -> GraffMatchConfig:
     """The loop detector's verified matcher: the defaults with point hypotheses on (they only act on
-    the scan pass's raw-scan evidence; ``verify.LOOP_POINT_HYPOTHESES``, session 16)."""
+    the scan pass's raw-scan evidence; ``verification_config.LOOP_POINT_HYPOTHESES``, session 16)."""
     cfg = GraffMatchConfig()
     cfg.verification.point_hypotheses = LOOP_POINT_HYPOTHESES
     return cfg
