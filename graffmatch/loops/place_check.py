@@ -162,12 +162,13 @@ def run_place_check(query: int, recs: list[dict], config: VerificationConfig,
     todo = place_check_candidates(recs, config)
     if not todo:
         return
+    t_query = time.perf_counter()
     qc = cloud_of(query)
     if qc is None or len(qc) < 10:
         return
     radius = float(config.max_translation_m) - config.place_check_margin_m  # type: ignore[arg-type]
-    for r in todo:
-        t0 = time.perf_counter()
+    for k, r in enumerate(todo):
+        t0 = t_query if k == 0 else time.perf_counter()  # the first check's time includes reading the query's scan
         mc = cloud_of(r["match"])
         if mc is None or len(mc) < 10:
             continue
