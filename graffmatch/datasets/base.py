@@ -133,6 +133,11 @@ class ScanSequence:
     def __iter__(self) -> Iterator[Scan]:
         return (self[i] for i in range(len(self)))
 
+    def read_points(self, i: int) -> NDArray[np.float32]:
+        """Scan i's points alone: no labels read (~4 instead of ~10 ms for a 120k-point simulated scan), for readers
+        that need none (the loop place check)."""
+        return self._read_points(self._paths[self._check_index(i)])
+
     @property
     def poses(self) -> Array:
         return self._poses

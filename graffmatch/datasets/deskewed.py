@@ -56,9 +56,14 @@ class Deskewed:
         """The de-skewed points of the rows of raw scan i that ``rows(raw points)`` picks: the same points as
         ``self[i].points[rows(...)]`` up to which rows are picked, for a fraction of the de-skewing cost (de-skewing
         moves each point on its own). Why: the loop place check needs a voxel sample of two scans, not all points."""
-        scan = self.dataset[i]
-        sel = scan.points[np.asarray(rows(scan.points), dtype=np.int64)]
-        return deskew_in_sequence(sel, self.motion_poses, scan.index).astype(scan.points.dtype)
+        read = getattr(self.dataset, "read_points", None)
+        if read is not None:  # points alone, without the labels
+            points, index = read(i), int(i) % len(self)
+        else:
+            scan = self.dataset[i]
+            points, index = scan.points, scan.index
+        sel = points[np.asarray(rows(points), dtype=np.int64)]
+        return deskew_in_sequence(sel, self.motion_poses, index).astype(points.dtype)
 
     def __iter__(self):
         return (self[i] for i in range(len(self)))

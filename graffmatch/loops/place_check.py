@@ -92,14 +92,19 @@ def scan_place_cloud(scans: Any, i: int) -> PlaceCloud:
     de-skewed drive de-skews only the sampled points (:meth:`graffmatch.datasets.deskewed.Deskewed.points_subset`:
     ~2 instead of ~30 ms a scan)."""
     subset = getattr(scans, "points_subset", None)
-    if subset is not None:
-        return place_cloud(subset(i, _voxel_rows))
+    read = getattr(scans, "read_points", None)  # a dataset: the points alone, without the labels
     try:
-        scan = scans[i]
+        if subset is not None:
+            points = subset(i, _voxel_rows)
+        elif read is not None:
+            points = read(i)
+        else:
+            scan = scans[i]
+            points = getattr(scan, "points", scan)
     except (IndexError, KeyError, TypeError) as exc:
         raise InvalidInputError(f"place check: scan {i} is not in the scans given ({type(scans).__name__}): "
                                 f"they must hold every added scan, in order ({exc})") from None
-    return place_cloud(getattr(scan, "points", scan))
+    return place_cloud(points)
 
 
 def _normals(points: NDArray) -> NDArray[np.float64]:

@@ -175,6 +175,7 @@ def test_deskewed_subset_equals_the_rows_of_the_deskewed_scan(shared_data):
 
     ds = Deskewed(KittiFolder(shared_data / "kitti00_first6"))
     for i in (0, 3, 5):
+        assert np.array_equal(ds.dataset.read_points(i), ds.dataset[i].points)  # points alone: the same points
         full = ds[i].points
         rows = _voxel_rows(ds.dataset[i].points)
         assert np.array_equal(ds.points_subset(i, _voxel_rows), full[rows])
@@ -182,6 +183,8 @@ def test_deskewed_subset_equals_the_rows_of_the_deskewed_scan(shared_data):
         assert 1000 < len(pc) <= 8000
         full_rows = {tuple(r) for r in np.asarray(full[:, :3], np.float64)}
         assert all(tuple(p) in full_rows for p in pc.points[:200])
+    with pytest.raises(InvalidInputError, match="scan 6 is not in the scans given"):
+        scan_place_cloud(ds, 6)
 
 
 @pytest.mark.slow
