@@ -304,3 +304,37 @@ def test_register_small_random_clouds(seed, n, mode) -> None:
     res = _only_graffmatch_errors(lambda: register_scans(A, B))
     if res is not None and res.T_target_source is not None:
         assert np.isfinite(res.T_target_source).all()
+
+
+# ----------------------------------------------------------------------------------------------
+# the loop place check's inputs (graffmatch.loops.place_check, opt-in; session 23)
+# ----------------------------------------------------------------------------------------------
+@fuzz(60)
+@given(
+    cloud=st.one_of(
+        arrays(np.float64, st.tuples(st.integers(0, 40), st.integers(0, 6)), elements=ANY_FLOAT),
+        arrays(np.float32, st.tuples(st.integers(0, 40), st.just(4)), elements=st.floats(-1e6, 1e6, width=32)),
+        arrays(np.int64, st.tuples(st.integers(0, 40), st.just(3)), elements=st.integers(-10**12, 10**12)),
+        st.sampled_from([np.zeros(7), np.zeros((3, 3, 3)), np.array([["a", "b", "c"]]), np.empty((0, 3))]),
+    ),
+    scans=st.sampled_from(["list", "dict", "none", "int", "short"]),
+    seed=st.integers(0, 2**16),
+)
+def test_place_check_random_clouds_and_scan_sources(cloud, scans, seed) -> None:
+    """place_cloud, scan_place_cloud and remeasure on random clouds and scan containers: a finite cloud and pose, or a
+    GraffMatchError; never a foreign exception."""
+    from graffmatch.loops.place_check import PlaceCloud, place_cloud, remeasure, scan_place_cloud
+
+    pc = _only_graffmatch_errors(lambda: place_cloud(cloud))
+    if pc is not None:
+        assert isinstance(pc, PlaceCloud) and np.isfinite(pc.points).all()
+        if len(pc) >= 10:
+            rng = np.random.default_rng(seed)
+            T0 = np.eye(4)
+            T0[:3, 3] = rng.normal(0, 1, 3)
+            out = _only_graffmatch_errors(lambda: remeasure(pc, pc, T0))
+            if out is not None:
+                assert np.isfinite(out[0]).all() and np.isfinite(out[1])
+    source = {"list": [cloud], "dict": {0: cloud}, "none": None, "int": 3, "short": []}[scans]
+    got = _only_graffmatch_errors(lambda: scan_place_cloud(source, 0))
+    assert got is None or isinstance(got, PlaceCloud)
