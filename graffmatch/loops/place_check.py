@@ -32,7 +32,7 @@ from graffmatch.errors import InvalidInputError
 from graffmatch.geometry.transforms import rotation_error_deg
 from graffmatch.loops.verify import VerificationConfig
 from graffmatch.registration.icp import refine_icp
-from graffmatch.verification.evidence import first_per_voxel, voxel_downsample
+from graffmatch.verification.evidence import voxel_downsample, voxel_sample_rows
 
 #: The scan cloud of the check: the whole scan (ground included: on the calibration drives ICP measured the
 #: distance as well with the ground as without, and the database keeps no ground flag), voxelised, capped.
@@ -77,14 +77,8 @@ def place_cloud(points: NDArray) -> PlaceCloud:
 
 
 def _voxel_rows(points: NDArray) -> NDArray[np.int64]:
-    """Rows of :func:`place_cloud`'s voxel sample of ``points`` (first point a voxel, an even stride to the cap)."""
-    P = np.ascontiguousarray(np.asarray(points)[:, :3], dtype=np.float64)
-    ok, rows = first_per_voxel(P, PLACE_VOXEL_M)
-    if not ok:  # coordinates the compiled pass cannot key: every row, place_cloud samples them
-        return np.arange(len(P), dtype=np.int64)
-    if len(rows) > PLACE_MAX_POINTS:
-        rows = rows[np.linspace(0, len(rows) - 1, PLACE_MAX_POINTS).astype(np.int64)]
-    return rows
+    """Rows of :func:`place_cloud`'s voxel sample of ``points``."""
+    return voxel_sample_rows(points, PLACE_VOXEL_M, PLACE_MAX_POINTS)
 
 
 def scan_place_cloud(scans: Any, i: int) -> PlaceCloud:

@@ -203,34 +203,35 @@ def _occupancy_overlap_reference(
     return out
 
 
+def voxel_sample_rows(points: NDArray, voxel: float, max_points: int) -> NDArray[np.int64]:
+    """Rows of :func:`voxel_downsample`'s sample of ``points``, in row order. Why rows: a caller can then transform
+    only the sampled points (``Deskewed.points_subset``)."""
+    P = np.asarray(points)
+    P = np.ascontiguousarray(P[:, :3] if P.ndim == 2 else P.reshape(-1, 3), dtype=np.float64)
+    ok, rows = _first_per_voxel(P, float(voxel))
+    if not ok:  # the compiled pass cannot key these coordinates: its numpy specification
+        rows = np.flatnonzero(np.all(np.isfinite(P), axis=1))
+        if len(rows):
+            keys = np.floor(P[rows] / voxel).astype(np.int64)
+            keys -= keys.min(axis=0)
+            dims = keys.max(axis=0) + 1
+            if np.prod(dims.astype(float)) < 2**62:
+                rows = rows[first_of_each((keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2])]
+            else:  # absurd extents: fall back to row-unique
+                rows = rows[np.sort(np.unique(keys, axis=0, return_index=True)[1])]
+    if len(rows) > max_points:
+        rows = rows[np.linspace(0, len(rows) - 1, max_points).astype(np.int64)]
+    return rows
+
+
 def voxel_downsample(points: NDArray, voxel: float, max_points: int) -> NDArray[np.float64]:
     """One point per occupied voxel (the first, deterministic), then an even stride to the cap."""
     P = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-    ok, idx = first_per_voxel(P, float(voxel))
-    if ok:  # one compiled pass (below: its numpy specification, for coordinates it cannot key)
-        P = P[idx]
-        if len(P) > max_points:
-            P = P[np.linspace(0, len(P) - 1, max_points).astype(np.int64)]
-        return P
-    P = P[np.all(np.isfinite(P), axis=1)]
-    if len(P) == 0:
-        return P
-    keys = np.floor(P / voxel).astype(np.int64)
-    keys -= keys.min(axis=0)
-    dims = keys.max(axis=0) + 1
-    if np.prod(dims.astype(float)) < 2**62:
-        flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-        P = P[first_of_each(flat)]
-    else:  # absurd extents: fall back to row-unique
-        _, first = np.unique(keys, axis=0, return_index=True)
-        P = P[np.sort(first)]
-    if len(P) > max_points:
-        P = P[np.linspace(0, len(P) - 1, max_points).astype(np.int64)]
-    return P
+    return P[voxel_sample_rows(P, voxel, max_points)]
 
 
 @nb.njit(cache=True)
-def first_per_voxel(P: NDArray[np.float64], voxel: float) -> tuple[bool, NDArray[np.int64]]:
+def _first_per_voxel(P: NDArray[np.float64], voxel: float) -> tuple[bool, NDArray[np.int64]]:
     """Rows of the finite points that are the first in their voxel, in row order (what
     :func:`voxel_downsample`'s numpy path keeps), or (False, _) when a voxel index or the
     voxel box is too large for int64 keys (then that path answers)."""
