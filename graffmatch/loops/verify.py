@@ -260,8 +260,8 @@ def verify_candidate(
 
     Returns a dict: T_match_query (or None), confidence, overlap, n_associations, n_agreeing,
     matcher_valid, matcher_confidence, on_points (both sets carry evidence points), message, seconds.
-    With a place radius, a candidate that only the radius refused also gets ``radius_confidence`` (its confidence
-    inside the radius) and ``radius_T`` (the pose it refers to), for the place check (:mod:`.place_check`).
+    With a place radius and ``place_check``, a candidate that only the radius refused also gets ``radius_confidence``
+    (its confidence inside the radius) and ``radius_T`` (the pose it refers to), for :mod:`.place_check`.
     With both scan clouds given (landmark-poor scans, ``scan_cloud_below``) and the landmark rule
     not accepting, the pair is verified again on them (:func:`scan_pass`, its fields added); when
     :func:`scans_loop_confidence` accepts, T_match_query and confidence are the scan pass's
@@ -303,7 +303,7 @@ def verify_candidate(
             bool(res.valid), out["matcher_confidence"], n_agree, overlap,
             float(np.linalg.norm(T[:3, 3])), config, on_points,
         )
-        if config.max_translation_m is not None and out["confidence"] < config.min_confidence:
+        if config.place_check and config.max_translation_m is not None and out["confidence"] < config.min_confidence:
             inside = loop_confidence(bool(res.valid), mconf, n_agree, overlap, 0.0, config, on_points)
             if inside >= config.min_confidence:
                 out.update(radius_confidence=inside, radius_T=T)
@@ -316,7 +316,7 @@ def verify_candidate(
             sp["scan_origin"] == "points")
         if sconf >= config.min_confidence and sconf > out["confidence"]:
             out.update(support_T=out["T_match_query"], T_match_query=sT, confidence=sconf, on_scans=True)
-        elif sT is not None and config.max_translation_m is not None:
+        elif sT is not None and config.place_check and config.max_translation_m is not None:
             inside = scans_loop_confidence(sp["scan_valid"], sp["scan_confidence"], sp["scan_n_agreeing"], 0.0, config,
                                            sp["scan_origin"] == "points")
             if inside >= config.min_confidence and inside > out.get("radius_confidence", 0.0):
