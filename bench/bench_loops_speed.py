@@ -65,7 +65,7 @@ def main() -> None:
                     "poses for the descriptor+radius retriever and sequence consistency")
     ap.add_argument("--records", type=Path, default=None, help="one JSON line per timed query")
     ap.add_argument("--scan-source", action="store_true",
-                    help="give the detector the drive's scans (de-skewed as the benchmark does for '+deskew' drives), "
+                    help="give the detector the drive's scans ('+deskew' drives: de-skewed with the drift odometry, bench_loops.py's default), "
                     "which the place check (loops/place_check.py, session 23) reads inside the query's clock")
     ap.add_argument("--verification", nargs="+", default=[], metavar="KEY=VALUE",
                     help="override VerificationConfig fields of our detector (a labelled variant, e.g. "
