@@ -140,8 +140,11 @@ def main() -> None:
             if poses is not None:  # sequence consistency reads the poses given to add()
                 det._poses = list(poses)
             t_w, c_w = time.perf_counter(), time.process_time()
-            # warm-up (numba compilation, caches; the place check's first Open3D call) outside the clock
-            det.warm_up(points=False)
+            # warm-up (numba compilation, caches; the place check's first Open3D call) outside the clock, as
+            # run_loops' workers do it: with the evidence-point and raw-scan paths when two scans keep points
+            # (until session 24 points=False here, so those kernels loaded, or on a cold cache compiled, inside a
+            # timed query: downtown-s1's 260 took 0.6-0.8 s on a cold cache)
+            det.warm_up(points=sum(ls.points is not None for ls in db.landmarks) >= 2)
             for q in range(len(db) - 1, len(db) - 4, -1):
                 det.detect(q)
             warm = (time.perf_counter() - t_w, time.process_time() - c_w)
