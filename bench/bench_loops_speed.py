@@ -151,6 +151,7 @@ def main() -> None:
             qs = [q for q in range(0, len(db), args.stride) if eligible_count(db.timestamps, q, cfg.retrieval) > 0]
             per, cpu, ver_s, nver, nloop = [], [], [], [], 0
             ret_s, quick_s, npass, ncand, nver_pts, nscan, nscreen = [], [], [], [], [], [], []
+            place_s, nplace = [], []  # the place check's own time (loops/place_check.py), queries it ran on
             load_a = os.getloadavg()[0]
             for q in qs:
                 c0 = time.process_time()
@@ -169,11 +170,14 @@ def main() -> None:
                 nver_pts.append(sum(bool(r.get("on_points")) for r in recs if r["verified"]))
                 nscan.append(sum("scan_valid" in r for r in recs if r["verified"]))
                 nscreen.append(sum("screen_prior" in r for r in recs))  # session 16's first screen
+                place_s.append(sum(r.get("place_seconds", 0.0) for r in recs))
+                nplace.append(sum("place_seconds" in r for r in recs))
                 if rec_f:
                     rec_f.write(json.dumps({
                         "drive": drive, "mode": mode, "query": q, "ms": 1e3 * per[-1], "cpu_ms": 1e3 * cpu[-1],
                         "retrieve_ms": 1e3 * ret_s[-1], "quick_ms": 1e3 * quick_s[-1], "loop": bool(loops),
                         "candidates": len(recs), "quick_passing": npass[-1],
+                        "place_check_ms": 1e3 * place_s[-1], "place_checked": nplace[-1],
                         "verified": [{"match": r["match"], "rank": r["rank"], "on_points": bool(r.get("on_points")),
                                       "ms": 1e3 * r.get("verify_seconds", 0.0), "confidence": r["confidence"],
                                       "scan_pass": "scan_valid" in r, "on_scans": bool(r.get("on_scans"))}
@@ -197,6 +201,8 @@ def main() -> None:
                    "verified_on_points_per_query": float(np.mean(nver_pts)),
                    "scan_passes_per_query": float(np.mean(nscan)),
                    "screens_per_query": float(np.mean(nscreen)),
+                   "place_check_ms_per_query_mean": 1e3 * float(np.mean(place_s)),
+                   "place_checked_queries": int(np.count_nonzero(nplace)),
                    "scans_with_scan_cloud": sum(x is not None for x in db.extra["scan"]),
                    "retriever": cfg.retrieval.method if poses is not None else "descriptor (no positions)",
                    "odometry": None if poses is None else str(odo),
