@@ -64,8 +64,8 @@ def main() -> None:
                     help="'kiss-icp' (<runs>/<raw drive>/kiss_icp_kitti.txt) or a KITTI pose file: positions and "
                     "poses for the descriptor+radius retriever and sequence consistency")
     ap.add_argument("--records", type=Path, default=None, help="one JSON line per timed query")
-    ap.add_argument("--scan-source", action="store_true",
-                    help="give the detector the drive's scans ('+deskew' drives: de-skewed with the drift odometry, bench_loops.py's default), "
+    ap.add_argument("--scan-source", action=argparse.BooleanOptionalAction, default=True,
+                    help="give the detector the drive's scans, as graffmatch loops does (default; --no-scan-source: none) ('+deskew' drives: de-skewed with the drift odometry, bench_loops.py's default), "
                     "which the place check (loops/place_check.py, session 23) reads inside the query's clock")
     ap.add_argument("--verification", nargs="+", default=[], metavar="KEY=VALUE",
                     help="override VerificationConfig fields of our detector (a labelled variant, e.g. "

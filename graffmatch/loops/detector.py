@@ -75,6 +75,7 @@ class LoopDetector:
         self.config = config or LoopDetectorConfig()
         self.scans = scans
         self._place: OrderedDict[int, PlaceCloud] = OrderedDict()
+        self._warned_no_scans = False
         self.db = LandmarkDatabase()
         self.retriever = make_retriever(self.config.retrieval)
         # One configured scan-to-scan path (graffmatch.pipeline.ScanMatcher): the same extractor
@@ -307,6 +308,16 @@ class LoopDetector:
 
     def detect(self, query: int) -> list[LoopClosure]:
         """Retrieve and verify the candidates of a scan already in the database."""
+        v = self.config.verification
+        if self.scans is None and v.place_check and v.max_translation_m is not None and not self._warned_no_scans:
+            # not silent: the default place check cannot run, so loops estimated just beyond the gate stay refused
+            self._warned_no_scans = True
+            warnings.warn(
+                f"LoopDetector: the place check is on with a {v.max_translation_m} m place radius but no scans were "
+                "given (LoopDetector(config, scans=...)), so loops estimated just beyond the radius less "
+                f"{v.place_margin_m} m stay refused; pass the scans, or set verification.place_check=False",
+                stacklevel=2,
+            )
         t1 = time.perf_counter()
         m = eligible_count(self.db.timestamps, query, self.config.retrieval)
         idx, dist = self.retriever.candidates(self.db, query, m)

@@ -91,16 +91,17 @@ SCANS_MAX_CONFLICT: float | None = 0.12
 LOCAL_MAP_BELOW = 6
 LOCAL_MAP_FRAMES = 5
 LOCAL_MAP_ON_POINTS_ONLY = True
-#: The place check (loops/place_check.py, session 23; opt-in): a query whose verified candidates the place radius
-#: alone refused gets those estimated at most PLACE_CHECK_BAND_M beyond the radius less place_margin_m (the gate)
-#: re-measured by ICP on the two scans (at most PLACE_CHECK_MAX, nearest first); one is a loop when the re-measured
-#: distance is within the radius less PLACE_CHECK_MARGIN_M and ICP moved the verified pose by at most 0.5 m / 2 deg.
-#: PLACE_CHECK_BAND_M (rule v2): every acceptance of the calibration run was estimated within 0.2 m of the gate.
-#: PLACE_CHECK_MARGIN_M: the calibration drives' largest |re-measured - true distance| of 1,226 pose-right candidates
-#: (0.056 m), rounded up to 5 cm (docs/loops.md session 23). Off by default: reading and re-measuring two scans costs
-#: 45-110 ms a checked query; on downtown-s1 at k = 5 (every 4th query) +1.6, +1.2, -0.4 ms a query in three
-#: interleaved pairs, over the 0.94 ms left to the 20 ms target (session 20).
-PLACE_CHECK = False
+#: The place check (loops/place_check.py, session 23; the default since session 24): a query whose verified candidates
+#: the place radius alone refused gets those estimated at most PLACE_CHECK_BAND_M beyond the radius less place_margin_m
+#: (the gate) re-measured by ICP on the two scans (at most PLACE_CHECK_MAX, nearest first); one is a loop when the
+#: re-measured distance is within the radius less PLACE_CHECK_MARGIN_M and ICP moved the verified pose by at most
+#: 0.5 m / 2 deg. PLACE_CHECK_BAND_M (rule v2): every acceptance of the calibration run was estimated within 0.2 m of
+#: the gate. PLACE_CHECK_MARGIN_M: the calibration drives' largest |re-measured - true distance| of 1,226 pose-right
+#: candidates (0.056 m), rounded up to 5 cm (docs/loops.md session 23). On by default since session 24 (rule v3): a
+#: checked query costs 36-111 ms more, 1.15-1.57 ms a query over every downtown-s1 query, which stays at 11.8-17.4 ms
+#: at k = 5 against the 20 ms target. It needs the scans: without them (an online LoopDetector given none) it does not
+#: run and such loops stay refused.
+PLACE_CHECK = True
 PLACE_CHECK_BAND_M = 0.2
 PLACE_CHECK_MARGIN_M = 0.1
 PLACE_CHECK_MAX = 2
@@ -141,7 +142,7 @@ class VerificationConfig(BaseModel):
         description="with max_translation_m and the scans at hand (graffmatch loops, the benchmark, a LoopDetector "
         "given its scans): a query whose verified candidates only the place radius refused gets those estimated at "
         "most place_check_band_m beyond max_translation_m minus place_margin_m (the gate) re-measured by ICP on the two scans "
-        "(loops/place_check.py); off by default (its cost, docs/loops.md session 23)",
+        "(loops/place_check.py); on by default since session 24 (docs/loops.md)",
     )
     place_check_band_m: float = Field(PLACE_CHECK_BAND_M, ge=0, description="see place_check [m]")
     place_check_margin_m: float = Field(

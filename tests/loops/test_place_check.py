@@ -128,7 +128,7 @@ def test_candidates_nearest_first_capped_and_none_when_a_loop_exists():
     assert [r["match"] for r in place_check_candidates(recs, cfg)] == [1, 4]
     assert [r["match"] for r in place_check_candidates(recs, cfg.model_copy(update={"place_check_max": 5}))] == [1, 4, 0]
     assert [r["match"] for r in place_check_candidates(recs, cfg.model_copy(update={"place_check_band_m": 0.2}))] == [1]
-    assert VerificationConfig().place_check_band_m == 0.2
+    assert VerificationConfig().place_check_band_m == 0.2 and VerificationConfig().place_check  # the default (session 24)
     assert place_check_candidates(recs, cfg.model_copy(update={"place_check": False})) == []
     assert place_check_candidates(recs, cfg.model_copy(update={"max_translation_m": None})) == []
     assert place_check_candidates([*recs, {**_record(8, T[3]), "confidence": 0.8}], cfg) == []
@@ -195,6 +195,7 @@ def test_run_loops_re_measures_a_loop_estimated_beyond_the_radius(tmp_path):
     refused; no reported loop lies beyond the radius in truth."""
     import json
     import shutil
+    import warnings
 
     from graffmatch.datasets.registry import open_dataset
     from graffmatch.datasets.simulator import SUITES, TrajectoryConfig, simulate_dataset
@@ -251,11 +252,20 @@ def test_run_loops_re_measures_a_loop_estimated_beyond_the_radius(tmp_path):
     # online: the detector given the drive's scans finds the same loop with the same pose
     det = LoopDetector(config(True), scans=ds)
     online = {}
-    for i in range(len(ds)):
-        for c in det.add(load_landmarks(tmp_path / "any" / "landmarks" / f"{i:06d}.npz"), timestamp=float(ds.timestamps[i])):
-            online[(c.query, c.match)] = c
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for i in range(len(ds)):
+            for c in det.add(load_landmarks(tmp_path / "any" / "landmarks" / f"{i:06d}.npz"),
+                             timestamp=float(ds.timestamps[i])):
+                online[(c.query, c.match)] = c
+    assert not [w for w in caught if "no scans were given" in str(w.message)]
     assert np.allclose(online[(got.query, got.match)].T_match_query, got.T_match_query, atol=1e-6)
-    blind = LoopDetector(config(True))  # without the scans the check cannot run
-    for i in range(lc.query + 1):
-        res = blind.add(load_landmarks(tmp_path / "any" / "landmarks" / f"{i:06d}.npz"), timestamp=float(ds.timestamps[i]))
+    blind = LoopDetector(config(True))  # without the scans the check cannot run, and the detector says so, once
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for i in range(lc.query + 1):
+            res = blind.add(load_landmarks(tmp_path / "any" / "landmarks" / f"{i:06d}.npz"),
+                            timestamp=float(ds.timestamps[i]))
     assert not res
+    said = [w for w in caught if "no scans were given" in str(w.message)]
+    assert len(said) == 1 and f"{radius} m place radius" in str(said[0].message)
