@@ -355,7 +355,7 @@ class LoopDetector:
         return sorted((c for c in out if c.valid), key=lambda c: -c.confidence)
 
 
-#: What this process has warmed up (:meth:`LoopDetector.warm_up`): "landmarks", "points".
+#: What this process has warmed up (:meth:`LoopDetector.warm_up`): "landmarks", "points", "place" (the scan reader).
 _WARMED: set[str] = set()
 
 
@@ -365,7 +365,9 @@ def warm_up_once(det: LoopDetector, points: bool) -> tuple[float, float]:
     Why: a query's time should be the query's; loading or compiling numba kernels is a cost of
     the process (once, like starting it), so ``run_loops``' workers do it first and report it
     apart (``warmup_s``)."""
-    need = {"landmarks"} | ({"points"} if points else set())
+    v = det.config.verification
+    place = det.scans is not None and v.place_check and v.max_translation_m is not None
+    need = {"landmarks"} | ({"points"} if points else set()) | ({"place"} if place else set())
     if need <= _WARMED:
         return 0.0, 0.0
     c0 = time.process_time()

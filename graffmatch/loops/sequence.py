@@ -103,7 +103,7 @@ def _extract_task(args: tuple[Dataset, int, str, str]) -> tuple[int, float]:
     dataset, i, config_json, out_file = args
     t0 = time.perf_counter()
     config = LoopDetectorConfig.model_validate_json(config_json)
-    det = LoopDetector(config)
+    det = LoopDetector(config, scans=dataset)  # the scans only for its warm-up: the place check's reader
     scan = dataset[i]
     labels = scan.labels if config.use_labels else None
     with warnings.catch_warnings():
@@ -174,7 +174,7 @@ def _verify_task(args: tuple) -> list[dict]:
     local_ids, local_key = args[6] if len(args) > 6 else (frozenset(), "")
     dataset = args[7] if len(args) > 7 else None
     config = LoopDetectorConfig.model_validate_json(config_json)
-    det = LoopDetector(config)
+    det = LoopDetector(config, scans=dataset)  # the scans only for its warm-up: the place check's reader
     _CACHE.reset((out_dir, database_key + config.quick.model_dump_json() + local_key))
     warm_s, warm_cpu_s = warm_up_once(det, warm_points)
     index_s = [0.0]
