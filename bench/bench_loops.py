@@ -181,8 +181,11 @@ def main() -> None:
     if args.drives:
         drives = [(d.rsplit(":", 1)[0], int(d.rsplit(":", 1)[1])) for d in args.drives]
     seqs = simulate(args.data, args.scans, args.realism, drives)
-    if not args.no_courtyard and COURTYARD.is_dir():
-        seqs.append(COURTYARD.resolve())
+    if not args.no_courtyard:
+        if COURTYARD.is_dir():
+            seqs.append(COURTYARD.resolve())
+        else:  # said, not silent: a worktree outside the checkout has no ../shared (session 24 lost it so once)
+            print(f"balm_courtyard skipped: {COURTYARD} is not a folder (../shared/data absent)", flush=True)
     if args.only:
         by_name = {p.name: p for p in seqs}
         seqs = [by_name[n] for n in args.only]
