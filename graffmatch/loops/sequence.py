@@ -103,7 +103,7 @@ def _extract_task(args: tuple[Dataset, int, str, str]) -> tuple[int, float]:
     dataset, i, config_json, out_file = args
     t0 = time.perf_counter()
     config = LoopDetectorConfig.model_validate_json(config_json)
-    det = LoopDetector(config, scans=dataset)  # the scans only for its warm-up: the place check's reader
+    det = LoopDetector(config)
     scan = dataset[i]
     labels = scan.labels if config.use_labels else None
     with warnings.catch_warnings():
