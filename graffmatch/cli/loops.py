@@ -90,7 +90,8 @@ def loops(
         bool | None,
         typer.Option("--place-check/--no-place-check",
                      help="With --place-radius: re-measure loops estimated just beyond it by ICP on the two scans "
-                     "(a few cm instead of decimetres; 36-111 ms a checked query). On by default."),
+                     "(a few cm instead of decimetres; 36-111 ms a checked query). On by default. Its margin assumes "
+                     "motion-compensated scans: de-skew raw scans of a moving vehicle (--deskew)."),
     ] = None,
     evidence_points_below: Annotated[
         int | None,
