@@ -105,6 +105,11 @@ class ScanSequence:
             raise MalformedFileError(f"{self.name}: {n} scans but {self._times.shape[0]} times")
         self._poses.setflags(write=False)
 
+    #: Whether the scans are free of motion smear (de-skewed, or taken without motion distortion): True, False,
+    #: or None when the dataset does not say (most real data). Readers that rely on centimetre geometry of whole
+    #: scans (the loop place check) refuse scans that say False.
+    motion_compensated: bool | None = None
+
     # ---- protocol ------------------------------------------------------------------
     def __len__(self) -> int:
         return len(self._paths)

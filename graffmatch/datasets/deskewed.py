@@ -43,6 +43,8 @@ class Deskewed:
         #: a different name and cache tag, so caches never mix raw and de-skewed landmarks
         self.name = f"{getattr(dataset, 'name', 'dataset')}+deskew"
         self.cache_tag = "deskew:" + hashlib.sha1(np.ascontiguousarray(poses).tobytes()).hexdigest()[:16]
+        #: the point of this wrapper (see ScanSequence.motion_compensated)
+        self.motion_compensated = True
 
     def __len__(self) -> int:
         return len(self.dataset)

@@ -106,6 +106,23 @@ class KittiFolder(KittiLayoutSequence):
             name=name or root.name,
         )
         self.root = root
+        self.motion_compensated = _simulated_motion_compensated(root)
+
+
+def _simulated_motion_compensated(root: Path) -> bool | None:
+    """What a simulated drive's ``sim_meta.json`` says of motion smear: False for the ``realistic`` preset's
+    distorted, not de-skewed scans, True for any other simulated drive, None without the file (not simulated) or when
+    it cannot be read."""
+    import json
+
+    try:
+        meta = json.loads((root / "sim_meta.json").read_text())
+    except (OSError, ValueError):
+        return None
+    realism = meta.get("realism") if isinstance(meta, dict) else None
+    if not isinstance(realism, dict):
+        return True if isinstance(meta, dict) else None
+    return not (bool(realism.get("motion_distortion")) and not bool(realism.get("deskew")))
 
 
 def ground_truth_between(source: str | Path, target: str | Path) -> np.ndarray:

@@ -29,6 +29,8 @@ def _sequence_name(sequence: str | int) -> str:
 class KittiOdometry(KittiLayoutSequence):
     """One sequence of KITTI odometry / SemanticKITTI, LiDAR-frame ground truth."""
 
+    motion_compensated = True  # KITTI odometry ships its scans de-skewed
+
     def __init__(self, root: str | Path, sequence: str | int = "00") -> None:
         root = Path(root)
         seq = _sequence_name(sequence)

@@ -30,7 +30,13 @@ from graffmatch.loops.database import (
 )
 from graffmatch.loops.descriptor import DescriptorConfig, landmark_descriptor
 from graffmatch.loops.local_map import local_map_at
-from graffmatch.loops.place_check import PlaceCloud, place_cloud, remeasure, scan_place_cloud
+from graffmatch.loops.place_check import (
+    PlaceCloud,
+    place_check_scans,
+    place_cloud,
+    remeasure,
+    scan_place_cloud,
+)
 from graffmatch.loops.plan import verify_query
 from graffmatch.loops.quickcheck import QuickCheckConfig, QuickIndex, quick_check_many, quick_index
 from graffmatch.loops.retrieval import RetrievalConfig, eligible_count, make_retriever
@@ -76,6 +82,7 @@ class LoopDetector:
         self.scans = scans
         self._place: OrderedDict[int, PlaceCloud] = OrderedDict()
         self._warned_no_scans = False
+        self._place_ok: bool | None = None  # whether the place check runs on ``scans`` (decided at the first query)
         self.db = LandmarkDatabase()
         self.retriever = make_retriever(self.config.retrieval)
         # One configured scan-to-scan path (graffmatch.pipeline.ScanMatcher): the same extractor
@@ -318,6 +325,8 @@ class LoopDetector:
                 f"{v.place_margin_m} m stay refused; pass the scans, or set verification.place_check=False",
                 stacklevel=2,
             )
+        if self._place_ok is None:  # once: refuses (and says so) scans that declare motion smear
+            self._place_ok = place_check_scans(self.scans, v) is not None
         t1 = time.perf_counter()
         m = eligible_count(self.db.timestamps, query, self.config.retrieval)
         idx, dist = self.retriever.candidates(self.db, query, m)
@@ -327,8 +336,7 @@ class LoopDetector:
             query, list(zip(idx.tolist(), dist.tolist(), strict=True)), self.landmarks,
             self.quick_index, self.matcher, self.config.verification, self.config.quick, self.scan_of, self._pose_of,
             self.db.landmarks.__getitem__, self.own_quick_index,
-            self.place_cloud if self.scans is not None and self.config.verification.place_check
-            else None,
+            self.place_cloud if self._place_ok else None,
         )
         recs = self._consistent(query, recs)
         out = []

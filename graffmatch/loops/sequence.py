@@ -53,7 +53,7 @@ from graffmatch.loops.descriptor import landmark_descriptor
 from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig, warm_up_once
 from graffmatch.loops.io import loop_edges, write_g2o, write_loops_csv
 from graffmatch.loops.local_map import attach_local_maps
-from graffmatch.loops.place_check import scan_place_cloud
+from graffmatch.loops.place_check import place_check_scans, scan_place_cloud
 from graffmatch.loops.plan import verify_query
 from graffmatch.loops.quickcheck import QuickIndex, quick_index
 from graffmatch.loops.retrieval import eligible_count
@@ -489,8 +489,9 @@ def run_loops(
             n_done = 0
             try:
                 warm_points = sum(ls.points is not None for ls in db.landmarks) >= 2  # a pair on points
+                place_scans = place_check_scans(dataset, config.verification)  # None: no place check
                 tasks = [(str(out), stats["database_key"], cfg_json, c, warm_points,
-                          None if odometry is None else _chunk_poses(odometry, c), (local_ids, local_key), dataset)
+                          None if odometry is None else _chunk_poses(odometry, c), (local_ids, local_key), place_scans)
                          for c in chunks]
                 for _, recs in ex.imap_unordered(_verify_task, tasks):
                     for rec in recs:

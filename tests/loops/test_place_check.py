@@ -269,3 +269,45 @@ def test_run_loops_re_measures_a_loop_estimated_beyond_the_radius(tmp_path):
     assert not res
     said = [w for w in caught if "no scans were given" in str(w.message)]
     assert len(said) == 1 and f"{radius} m place radius" in str(said[0].message)
+
+
+def test_scans_that_say_they_are_motion_smeared_are_not_re_measured(tmp_path):
+    """The check's 0.1 m margin rests on motion-compensated scans (session 24: on a raw, smeared drive ICP measured a
+    loop 23.5 cm short). Scans that declare smear are refused, with a warning; scans that say nothing are used."""
+    import json
+    import warnings
+
+    from graffmatch.datasets.folder import _simulated_motion_compensated
+    from graffmatch.loops.place_check import place_check_scans
+
+    class Scans(list):
+        motion_compensated: bool | None = None
+
+    cfg = _config()
+    smeared, clean, unknown = Scans([np.zeros((5, 3))]), Scans([np.zeros((5, 3))]), Scans([np.zeros((5, 3))])
+    smeared.motion_compensated, clean.motion_compensated = False, True
+    with pytest.warns(UserWarning, match="motion-distorted and not de-skewed"):
+        assert place_check_scans(smeared, cfg) is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert place_check_scans(clean, cfg) is clean and place_check_scans(unknown, cfg) is unknown
+        assert place_check_scans(smeared, cfg.model_copy(update={"place_check": False})) is None
+        assert place_check_scans(clean, cfg.model_copy(update={"max_translation_m": None})) is None
+        assert place_check_scans(None, cfg) is None
+
+    # what a simulated drive's sim_meta.json says
+    def meta(d: dict | None, name: str):
+        root = tmp_path / name
+        root.mkdir()
+        if d is not None:
+            (root / "sim_meta.json").write_text(json.dumps(d))
+        return _simulated_motion_compensated(root)
+
+    assert meta({"realism": {"motion_distortion": True, "deskew": False}}, "raw") is False
+    assert meta({"realism": {"motion_distortion": True, "deskew": True}}, "deskewed") is True
+    assert meta({"realism": {"motion_distortion": False}}, "ideal") is True
+    assert meta({"generator": "x"}, "old") is True
+    assert meta(None, "real") is None
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "sim_meta.json").write_text("{not json")
+    assert _simulated_motion_compensated(tmp_path / "bad") is None
