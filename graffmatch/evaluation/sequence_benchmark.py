@@ -128,6 +128,12 @@ def evaluate_method(run: MethodRun, poses: Array, timestamps: Array, retrieval: 
 
 
 # ---- methods ------------------------------------------------------------------------------------
+def _retriever_label(method: str, has_odometry: bool) -> str:
+    """The retriever a run really used: without odometry ``descriptor+radius`` has no positions and is the
+    descriptor alone (the note said otherwise until session 24)."""
+    return "descriptor (no odometry)" if method == "descriptor+radius" and not has_odometry else method
+
+
 def run_ours(dataset, out_dir: Path, config: LoopDetectorConfig | None = None, workers: int | None = None,
              progress: Callable | None = None, odometry: Array | None = None) -> MethodRun:
     """GraffMatch loops: the most confident verified candidate per query is scored (``odometry``:
@@ -149,7 +155,7 @@ def run_ours(dataset, out_dir: Path, config: LoopDetectorConfig | None = None, w
         "ours (GraffMatch loops)", preds,
         (summary["verify_ms_per_query"] + summary["retrieve_ms_per_query"]) / 1e3,
         summary["database_bytes_per_scan"], cands,
-        note=f"retrieval {cfg.retrieval.method} top-{cfg.retrieval.top_k}, "
+        note=f"retrieval {_retriever_label(cfg.retrieval.method, odometry is not None)} top-{cfg.retrieval.top_k}, "
         f"{'BEV quick check, ' if cfg.verification.quick_check else ''}"
         f"at most {cfg.verification.max_verified} verified"
         f"{', stop at the first accepted' if cfg.verification.stop_when_accepted else ''}; "

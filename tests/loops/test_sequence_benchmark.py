@@ -140,3 +140,12 @@ def test_mapclosures_gt_map_range_from_the_method_name():
     for bad in ("mapclosures-gt:", "mapclosures-gt:x", "mapclosures-gt:0", "mapclosures-gt:nan"):
         with pytest.raises(InvalidInputError, match="mapclosures-gt:R"):
             map_range(bad)
+
+
+def test_the_note_names_the_retriever_a_run_really_used():
+    """Without odometry the default descriptor+radius retriever has no positions: the descriptor alone."""
+    from graffmatch.evaluation.sequence_benchmark import _retriever_label
+
+    assert _retriever_label("descriptor+radius", False) == "descriptor (no odometry)"
+    assert _retriever_label("descriptor+radius", True) == "descriptor+radius"
+    assert _retriever_label("scan-context", False) == "scan-context"
