@@ -82,7 +82,7 @@ def main() -> None:
     from graffmatch.geometry.pose_files import read_kitti
     from graffmatch.loops.database import LandmarkDatabase, load_landmarks, load_scan_cloud
     from graffmatch.loops.descriptor import landmark_descriptor
-    from graffmatch.loops.detector import LoopDetector
+    from graffmatch.loops.detector import LoopDetector, has_point_pairs
     from graffmatch.loops.local_map import attach_local_maps
     from graffmatch.loops.quickcheck import quick_index
     from graffmatch.loops.retrieval import eligible_count
@@ -144,7 +144,7 @@ def main() -> None:
             # run_loops' workers do it: with the evidence-point and raw-scan paths when two scans keep points
             # (until session 24 points=False here, so those kernels loaded, or on a cold cache compiled, inside a
             # timed query: downtown-s1's 260 took 0.6-0.8 s on a cold cache)
-            det.warm_up(points=sum(ls.points is not None for ls in db.landmarks) >= 2)
+            det.warm_up(points=has_point_pairs(db))
             for q in range(len(db) - 1, len(db) - 4, -1):
                 det.detect(q)
             warm = (time.perf_counter() - t_w, time.process_time() - c_w)

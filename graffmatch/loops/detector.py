@@ -81,7 +81,6 @@ class LoopDetector:
         self.config = config or LoopDetectorConfig()
         self.scans = scans
         self._place: OrderedDict[int, PlaceCloud] = OrderedDict()
-        self._warned_no_scans = False
         self._place_ok: bool | None = None  # whether the place check runs on ``scans`` (decided at the first query)
         self.db = LandmarkDatabase()
         self.retriever = make_retriever(self.config.retrieval)
@@ -315,18 +314,8 @@ class LoopDetector:
 
     def detect(self, query: int) -> list[LoopClosure]:
         """Retrieve and verify the candidates of a scan already in the database."""
-        v = self.config.verification
-        if self.scans is None and v.place_check and v.max_translation_m is not None and not self._warned_no_scans:
-            # not silent: the default place check cannot run, so loops estimated just beyond the gate stay refused
-            self._warned_no_scans = True
-            warnings.warn(
-                f"LoopDetector: the place check is on with a {v.max_translation_m} m place radius but no scans were "
-                "given (LoopDetector(config, scans=...)), so loops estimated just beyond the radius less "
-                f"{v.place_margin_m} m stay refused; pass the scans, or set verification.place_check=False",
-                stacklevel=2,
-            )
-        if self._place_ok is None:  # once: refuses (and says so) scans that declare motion smear
-            self._place_ok = place_check_scans(self.scans, v) is not None
+        if self._place_ok is None:  # once: without scans, or with smeared ones, the check is off and says why
+            self._place_ok = place_check_scans(self.scans, self.config.verification) is not None
         t1 = time.perf_counter()
         m = eligible_count(self.db.timestamps, query, self.config.retrieval)
         idx, dist = self.retriever.candidates(self.db, query, m)
@@ -365,6 +354,12 @@ class LoopDetector:
 
 #: What this process has warmed up (:meth:`LoopDetector.warm_up`): "landmarks", "points", "place" (the scan reader).
 _WARMED: set[str] = set()
+
+
+def has_point_pairs(db: LandmarkDatabase) -> bool:
+    """Whether a query can verify a pair on points (two scans keep evidence points): then the warm-up covers that
+    path, and the raw-scan pass, too (``run_loops``' workers and ``bench_loops_speed.py``)."""
+    return sum(ls.points is not None for ls in db.landmarks) >= 2
 
 
 def warm_up_once(det: LoopDetector, points: bool) -> tuple[float, float]:

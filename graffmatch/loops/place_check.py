@@ -103,20 +103,23 @@ def scan_place_cloud(scans: Any, i: int) -> PlaceCloud:
 
 
 def place_check_scans(scans: Any, config: VerificationConfig) -> Any:
-    """``scans`` when the place check runs on them, else None: it needs the check on, a place radius, and scans that
-    do not say they are motion-smeared (``motion_compensated`` False: a simulated ``realistic`` drive that was not
-    de-skewed). Why: the check's 0.1 m margin rests on de-skewed scans (ICP within 0.056 m); on smeared scans ICP
-    measured a loop 23.5 cm short (docs/loops.md, session 24). Refusing them is said, not silent: a warning names
-    the way out (de-skew)."""
-    if scans is None or not config.place_check or config.max_translation_m is None:
+    """``scans`` when the place check runs on them, else None. It needs the check on, a place radius, and scans
+    that do not say they are motion-smeared (``motion_compensated`` False: a simulated ``realistic`` drive that was
+    not de-skewed). Why: the check's 0.1 m margin rests on de-skewed scans (ICP within 0.056 m); on smeared scans ICP
+    measured a loop 23.5 cm short (docs/loops.md, session 24). With the check on, a refusal is said, not silent:
+    the warning names the way out."""
+    if not config.place_check or config.max_translation_m is None:
         return None
-    if getattr(scans, "motion_compensated", None) is False:
-        warnings.warn(
-            f"place check off for {getattr(scans, 'name', type(scans).__name__)}: its scans are motion-distorted and "
-            "not de-skewed, and the check's margin holds only on motion-compensated scans; de-skew them (graffmatch "
-            "loops --deskew, or graffmatch.datasets.Deskewed)",
-            stacklevel=2,
-        )
+    why = None
+    if scans is None:
+        why = ("no scans were given (LoopDetector(config, scans=...)), so loops estimated just beyond the radius less "
+               f"{config.place_margin_m} m stay refused; pass the scans, or set verification.place_check=False")
+    elif getattr(scans, "motion_compensated", None) is False:
+        why = (f"the scans of {getattr(scans, 'name', type(scans).__name__)} are motion-distorted and not de-skewed, "
+               "and the check's margin holds only on motion-compensated scans; de-skew them (graffmatch loops "
+               "--deskew, or graffmatch.datasets.Deskewed)")
+    if why is not None:
+        warnings.warn(f"place check off ({config.max_translation_m} m place radius): {why}", stacklevel=2)
         return None
     return scans
 

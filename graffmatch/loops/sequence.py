@@ -50,7 +50,12 @@ from graffmatch.loops.database import (
     save_landmarks,
 )
 from graffmatch.loops.descriptor import landmark_descriptor
-from graffmatch.loops.detector import LoopDetector, LoopDetectorConfig, warm_up_once
+from graffmatch.loops.detector import (
+    LoopDetector,
+    LoopDetectorConfig,
+    has_point_pairs,
+    warm_up_once,
+)
 from graffmatch.loops.io import loop_edges, write_g2o, write_loops_csv
 from graffmatch.loops.local_map import attach_local_maps
 from graffmatch.loops.place_check import place_check_scans, scan_place_cloud
@@ -488,7 +493,7 @@ def run_loops(
             ex = make_executor(name, workers=workers, address=address)
             n_done = 0
             try:
-                warm_points = sum(ls.points is not None for ls in db.landmarks) >= 2  # a pair on points
+                warm_points = has_point_pairs(db)
                 place_scans = place_check_scans(dataset, config.verification)  # None: no place check
                 tasks = [(str(out), stats["database_key"], cfg_json, c, warm_points,
                           None if odometry is None else _chunk_poses(odometry, c), (local_ids, local_key), place_scans)

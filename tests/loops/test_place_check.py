@@ -273,7 +273,8 @@ def test_run_loops_re_measures_a_loop_estimated_beyond_the_radius(tmp_path):
 
 def test_scans_that_say_they_are_motion_smeared_are_not_re_measured(tmp_path):
     """The check's 0.1 m margin rests on motion-compensated scans (session 24: on a raw, smeared drive ICP measured a
-    loop 23.5 cm short). Scans that declare smear are refused, with a warning; scans that say nothing are used."""
+    loop 23.5 cm short). Scans that declare smear are refused, with a warning; scans that say nothing are used; no
+    scans at all, with the check on, is said too."""
     import json
     import warnings
 
@@ -293,6 +294,7 @@ def test_scans_that_say_they_are_motion_smeared_are_not_re_measured(tmp_path):
         assert place_check_scans(clean, cfg) is clean and place_check_scans(unknown, cfg) is unknown
         assert place_check_scans(smeared, cfg.model_copy(update={"place_check": False})) is None
         assert place_check_scans(clean, cfg.model_copy(update={"max_translation_m": None})) is None
+    with pytest.warns(UserWarning, match="no scans were given"):  # the check is on but has nothing to read
         assert place_check_scans(None, cfg) is None
 
     # what a simulated drive's sim_meta.json says
