@@ -15,6 +15,11 @@ class InvalidInputError(GraffMatchError, ValueError):
     """Input arrays have NaN/Inf, wrong shapes, non-orthonormal bases or are empty."""
 
 
+class MissingPosesError(InvalidInputError):
+    """A dataset without ground-truth poses was asked for them (an evaluation, simulated drift); the message names
+    the file that was looked for and what runs without it."""
+
+
 class DegenerateGeometryError(GraffMatchError):
     """The geometry does not determine the requested quantity (e.g. only parallel planes)."""
 

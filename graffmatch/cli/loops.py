@@ -114,8 +114,10 @@ def loops(
     ] = None,
     optimize: Annotated[bool, typer.Option(help="Pose graph with GTSAM; KITTI/TUM trajectories, ATE/RPE.")] = False,
     odometry: Annotated[
-        str, typer.Option(help="Odometry for --optimize/radius: drift | gt | kiss-icp | PATH (KITTI poses).")
-    ] = "drift",
+        str | None,
+        typer.Option(help="Odometry for --optimize/radius: drift | gt | kiss-icp | PATH (KITTI poses). Default: drift "
+                     "(simulated from the ground truth) when the drive has poses, kiss-icp (from the scans) when not."),
+    ] = None,
     drift_yaw: Annotated[float, typer.Option(help="Simulated drift: heading bias (deg per 100 m).")] = 3.0,
     drift_seed: Annotated[int, typer.Option(help="Simulated drift seed.")] = 0,
     odometry_bias: Annotated[
@@ -136,6 +138,7 @@ def loops(
     ] = False,
 ) -> None:
     """Find every loop closure of a drive: landmarks per scan, retrieval, verified matching."""
+    from graffmatch.datasets.base import has_ground_truth
     from graffmatch.loops.detector import LoopDetectorConfig
     from graffmatch.loops.posegraph import OdometryDriftConfig, PoseGraphConfig
     from graffmatch.loops.sequence import optimize_run, prepare_drive, run_loops
@@ -171,6 +174,10 @@ def loops(
     cfg = LoopDetectorConfig.model_validate(cfg.model_dump())
     out_dir = output or run_dir(STATE.runs_dir, "loops")
     need_odometry = optimize or deskew or use_odometry or retriever == Retriever.radius or bool(local_map_frames)
+    if odometry is None:  # a folder of scans alone has no ground truth to drift: odometry from the scans
+        odometry = "drift" if has_ground_truth(ds) else "kiss-icp"
+        if need_odometry and odometry == "kiss-icp":
+            info(f"{sequence}: no ground-truth poses, so the odometry comes from the scans (KISS-ICP)")
     ds, odo = prepare_drive(ds, odometry if need_odometry else None, deskew,
                             OdometryDriftConfig(yaw_bias_deg_per_100m=drift_yaw, seed=drift_seed))
     with make_progress() as progress:
@@ -187,7 +194,7 @@ def loops(
     if optimize and odo is not None:
         import numpy as np
 
-        pg = optimize_run(out_dir, odo, np.asarray(ds.timestamps), reference=None if odometry == "gt" else np.asarray(ds.poses),
+        pg = optimize_run(out_dir, odo, np.asarray(ds.timestamps), reference=None if odometry == "gt" or not has_ground_truth(ds) else np.asarray(ds.poses),
                           config=PoseGraphConfig(estimate_odometry_bias=odometry_bias))
         if "odometry_heading_bias_deg_per_100m" in pg:
             out.print(f"estimated odometry heading bias: {pg['odometry_heading_bias_deg_per_100m']:+.2f} deg / 100 m")

@@ -16,11 +16,15 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import NDArray
 
-from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.errors import InvalidInputError, MalformedFileError, MissingPosesError
 from graffmatch.geometry.pose_files import orthonormalize, read_pose_file, rows_to_poses
 from graffmatch.lidar.io import read_bin, read_label
 
 Array = NDArray[np.float64]
+
+#: the scan rate assumed for a folder without times.txt: spinning LiDARs (Velodyne, Ouster, Hesai) and Livox
+#: default to 10 Hz, and a time window in seconds (the loop exclusion window) must not silently count frames
+ASSUMED_SCAN_RATE_HZ = 10.0
 
 
 @dataclass(frozen=True, repr=False)
@@ -29,16 +33,17 @@ class Scan:
 
     points : (N, 4) float32, x y z intensity in the LiDAR frame [m].
     labels : (N,) uint32 SemanticKITTI labels (class in the low 16 bits) or None.
-    T_world_lidar : (4, 4) ground-truth pose of the LiDAR in the world.
-    timestamp : seconds (since the start of the sequence when the dataset gives times,
-        otherwise the frame index).
+    T_world_lidar : (4, 4) ground-truth pose of the LiDAR in the world, or None when the dataset
+        has no poses (a folder of scans alone).
+    timestamp : seconds (since the start of the sequence when the dataset gives times; otherwise
+        the frame number at ``ASSUMED_SCAN_RATE_HZ``, and the dataset's ``times_assumed`` is True).
     index : position of the scan in its dataset (0..len-1).
     path : file the points were read from.
     """
 
     points: NDArray[np.float32]
     labels: NDArray[np.uint32] | None
-    T_world_lidar: Array
+    T_world_lidar: Array | None
     timestamp: float
     index: int
     path: Path
@@ -51,7 +56,8 @@ class Scan:
         return (
             f"Scan(index={self.index}, points={len(self.points)}, "
             f"labels={'yes' if self.labels is not None else 'no'}, t={self.timestamp:.3f}, "
-            f"position={np.round(self.T_world_lidar[:3, 3], 2).tolist()}, path='{self.path.name}')"
+            f"position={'unknown' if self.T_world_lidar is None else np.round(self.T_world_lidar[:3, 3], 2).tolist()}, "
+            f"path='{self.path.name}')"
         )
 
 
@@ -67,7 +73,7 @@ class Dataset(Protocol):
 
     @property
     def poses(self) -> Array:
-        """(n, 4, 4) ground-truth ``T_world_lidar`` of every scan."""
+        """(n, 4, 4) ground-truth ``T_world_lidar`` of every scan (``MissingPosesError`` when it has none)."""
         ...
 
     def scan_path(self, i: int) -> Path: ...
@@ -82,28 +88,35 @@ class ScanSequence:
 
     Subclasses fill ``_paths``, ``_poses`` and ``_times`` in their constructor and implement
     :meth:`_read_points` (and optionally :meth:`_read_labels`); everything else is shared.
-    Only the listing and the poses are read eagerly; points are read on access.
+    Only the listing and the poses are read eagerly; points are read on access. ``_poses`` is None
+    for scans without ground truth (a user's own drive): loop detection needs none, and what does
+    (an evaluation, simulated drift) raises :class:`MissingPosesError` naming ``_pose_source``.
     """
 
     name: str
     #: Encoding of the files returned by :meth:`scan_path` ("kitti-bin": float32 x y z i).
     scan_format: str = "kitti-bin"
     _paths: list[Path]
-    _poses: Array
+    _poses: Array | None
     _times: Array
+    #: where the poses were looked for, for the message when there are none
+    _pose_source: str = "poses.txt"
+    #: True when the dataset gave no times and they are frame numbers at ``ASSUMED_SCAN_RATE_HZ``
+    times_assumed: bool = False
 
     def _finish(self) -> None:
         """Validate what a subclass constructor assembled (called at its end)."""
         n = len(self._paths)
         if n == 0:
             raise InvalidInputError(f"{self.name}: no scans found")
-        if self._poses.shape != (n, 4, 4):
+        if self._poses is not None and self._poses.shape != (n, 4, 4):
             raise MalformedFileError(
                 f"{self.name}: {n} scans but poses of shape {self._poses.shape}"
             )
         if self._times.shape != (n,):
             raise MalformedFileError(f"{self.name}: {n} scans but {self._times.shape[0]} times")
-        self._poses.setflags(write=False)
+        if self._poses is not None:
+            self._poses.setflags(write=False)
 
     #: Whether the scans are free of motion smear (de-skewed, or taken without motion distortion): True, False,
     #: or None when the dataset does not say (most real data). Readers that rely on centimetre geometry of whole
@@ -133,7 +146,8 @@ class ScanSequence:
                 f"{self.name}: scan {path.name} has {points.shape[0]} points "
                 f"but {labels.shape[0]} labels"
             )
-        return Scan(points, labels, self._poses[i].copy(), float(self._times[i]), i, path)
+        pose = None if self._poses is None else self._poses[i].copy()
+        return Scan(points, labels, pose, float(self._times[i]), i, path)
 
     def __iter__(self) -> Iterator[Scan]:
         return (self[i] for i in range(len(self)))
@@ -144,12 +158,23 @@ class ScanSequence:
         return self._read_points(self._paths[self._check_index(i)])
 
     @property
+    def has_poses(self) -> bool:
+        """Whether the dataset has ground-truth poses (a folder of scans alone has none)."""
+        return self._poses is not None
+
+    @property
     def poses(self) -> Array:
+        if self._poses is None:
+            raise MissingPosesError(
+                f"{self.name}: no ground-truth poses ({self._pose_source} not found). Loop detection runs without "
+                "them; an evaluation or simulated drift needs them, and odometry can come from the scans "
+                "(--odometry kiss-icp) or a pose file (--odometry PATH)"
+            )
         return self._poses
 
     @property
     def timestamps(self) -> Array:
-        """(n,) seconds (or frame numbers when the dataset has no times)."""
+        """(n,) seconds (frame numbers at ``ASSUMED_SCAN_RATE_HZ`` when the dataset has no times)."""
         return self._times
 
     def scan_path(self, i: int) -> Path:
@@ -168,6 +193,11 @@ class ScanSequence:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, scans={len(self)})"
+
+
+def has_ground_truth(dataset: object) -> bool:
+    """Whether ``dataset`` has ground-truth poses (datasets that do not say, e.g. wrappers of arrays, have)."""
+    return bool(getattr(dataset, "has_poses", True))
 
 
 # ---- readers of the files the loaders share ---------------------------------------------

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from graffmatch.datasets.base import Dataset, Scan
+from graffmatch.datasets.base import Dataset, Scan, has_ground_truth
 from graffmatch.errors import InvalidInputError
 from graffmatch.lidar.deskew import deskew_in_sequence
 
@@ -73,6 +73,14 @@ class Deskewed:
     @property
     def poses(self) -> NDArray[np.float64]:
         return self.dataset.poses
+
+    @property
+    def has_poses(self) -> bool:
+        return has_ground_truth(self.dataset)
+
+    @property
+    def times_assumed(self) -> bool:
+        return bool(getattr(self.dataset, "times_assumed", False))
 
     @property
     def timestamps(self) -> NDArray[np.float64]:

@@ -4,10 +4,11 @@ Layout::
 
     <root>/velodyne/NNNNNN.bin     float32 x y z intensity
     <root>/labels/NNNNNN.label     optional SemanticKITTI labels (uint32)
-    <root>/poses.txt               one 3x4 pose per line, one line per scan (sorted by number)
+    <root>/poses.txt               optional: one 3x4 pose per line, one line per scan (sorted by number);
+                                   without it the scans have no ground truth (``has_poses`` False)
     <root>/calib.txt               optional; when it holds ``Tr`` the poses are camera-0 poses
                                    (KITTI convention) and are converted to the LiDAR frame
-    <root>/times.txt               optional, seconds, one per scan
+    <root>/times.txt               optional, seconds, one per scan (without it: frame number / 10 Hz)
 
 Without ``Tr`` the poses are read as LiDAR-to-world directly (e.g. ``balm_courtyard``).
 """
@@ -19,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from graffmatch.datasets.base import (
+    ASSUMED_SCAN_RATE_HZ,
     ScanSequence,
     calib_transform,
     camera_to_lidar_poses,
@@ -31,12 +33,13 @@ from graffmatch.geometry.pose_files import read_pose_file, rows_to_poses
 
 
 class KittiLayoutSequence(ScanSequence):
-    """A folder with ``velodyne/`` and optional ``labels/``; poses/calib/times given as paths."""
+    """A folder with ``velodyne/`` and optional ``labels/``; poses/calib/times given as paths (``pose_file`` None:
+    scans without ground truth)."""
 
     def __init__(
         self,
         scan_dir: Path,
-        pose_file: Path,
+        pose_file: Path | None,
         calib_file: Path | None,
         times_file: Path | None,
         label_dir: Path | None,
@@ -52,25 +55,28 @@ class KittiLayoutSequence(ScanSequence):
         self._paths = [p for _, p in files]
         self._frames = np.array([f for f, _ in files], dtype=np.int64)
         n = len(self._paths)
-        rows = read_pose_file(pose_file, n_columns=12)
-        if rows.shape[0] != n:
-            raise MalformedFileError(
-                f"{name}: {pose_file} has {rows.shape[0]} poses for {n} scans in {scan_dir}"
-            )
-        poses = rows_to_poses(rows, str(pose_file))
+        poses = None
+        if pose_file is not None:
+            rows = read_pose_file(pose_file, n_columns=12)
+            if rows.shape[0] != n:
+                raise MalformedFileError(
+                    f"{name}: {pose_file} has {rows.shape[0]} poses for {n} scans in {scan_dir}"
+                )
+            poses = rows_to_poses(rows, str(pose_file))
         self.T_cam_lidar: np.ndarray | None = None
         if calib_file is not None and calib_file.is_file():
             self.T_cam_lidar = calib_transform(read_kitti_calib(calib_file), "Tr", calib_file)
         if require_tr and self.T_cam_lidar is None:
             raise MalformedFileError(f"{name}: calibration {calib_file} has no 'Tr' entry")
         self.poses_are_camera = self.T_cam_lidar is not None
-        if self.T_cam_lidar is not None:
+        if self.T_cam_lidar is not None and poses is not None:
             poses = camera_to_lidar_poses(poses, self.T_cam_lidar)
         self._poses = poses
         if times_file is not None and times_file.is_file():
             self._times = read_times(times_file, n)
-        else:
-            self._times = self._frames.astype(float)
+        else:  # seconds all the same: frame numbers at the usual 10 Hz, and said (times_assumed)
+            self._times = self._frames.astype(float) / ASSUMED_SCAN_RATE_HZ
+            self.times_assumed = True
         self._label_dir = label_dir if label_dir is not None and label_dir.is_dir() else None
         self._finish()
 
@@ -97,9 +103,10 @@ class KittiFolder(KittiLayoutSequence):
         root = Path(root)
         if not root.is_dir():
             raise InvalidInputError(f"dataset folder not found: {root}")
+        self._pose_source = str(root / "poses.txt")
         super().__init__(
             scan_dir=root / "velodyne",
-            pose_file=root / "poses.txt",
+            pose_file=root / "poses.txt" if (root / "poses.txt").exists() else None,
             calib_file=root / "calib.txt",
             times_file=root / "times.txt",
             label_dir=root / "labels",

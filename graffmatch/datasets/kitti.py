@@ -6,7 +6,7 @@ Layout (as downloaded; SemanticKITTI adds ``labels/`` and its own ``poses.txt``)
     <root>/sequences/XX/labels/NNNNNN.label     optional
     <root>/sequences/XX/calib.txt               'Tr:' velodyne -> camera-0 (required)
     <root>/sequences/XX/times.txt               optional
-    <root>/poses/XX.txt  or  <root>/sequences/XX/poses.txt
+    <root>/poses/XX.txt  or  <root>/sequences/XX/poses.txt   optional (the test sequences 11-21 have none)
 
 The poses are camera-0 poses; the LiDAR pose of frame i is ``inv(Tr) @ P_i @ Tr``.
 """
@@ -40,12 +40,9 @@ class KittiOdometry(KittiLayoutSequence):
                 f"KITTI sequence folder not found: {seq_dir} (expected <root>/sequences/{seq})"
             )
         candidates = [root / "poses" / f"{seq}.txt", seq_dir / "poses.txt"]
+        # the test sequences 11-21 ship without poses: their scans still load (has_poses False)
         pose_file = next((p for p in candidates if p.is_file()), None)
-        if pose_file is None:
-            raise InvalidInputError(
-                f"KITTI sequence {seq}: no ground-truth poses (looked for "
-                f"{', '.join(str(c) for c in candidates)})"
-            )
+        self._pose_source = " or ".join(str(c) for c in candidates)
         calib = seq_dir / "calib.txt"
         if not calib.is_file():
             raise InvalidInputError(f"KITTI sequence {seq}: calibration not found: {calib}")

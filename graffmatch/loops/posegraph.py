@@ -330,7 +330,7 @@ def odometry_for(dataset, source: str, drift: OdometryDriftConfig | None = None,
     'kiss-icp' (KISS-ICP on the scans; with ``deskew`` the scans are raw and KISS-ICP de-skews
     them itself, see :func:`kiss_icp_odometry`) or a KITTI pose file path (LiDAR-to-world)."""
     if source == "gt":
-        return np.asarray(dataset.poses, float)
+        return np.asarray(dataset.poses, float)  # MissingPosesError, naming the file, without ground truth
     if source == "drift":
         return drifted_odometry(dataset.poses, drift)
     if source == "kiss-icp":
@@ -372,7 +372,7 @@ def kiss_end_to_mid(delta: Array) -> Array:
 
 def kiss_icp_odometry(dataset, deskew: bool = False) -> Array:
     """KISS-ICP (Vizzo et al. 2023) with its defaults, scan by scan; poses in scan 0's frame,
-    moved into the dataset's world frame with the first pose.
+    moved into the dataset's world frame with the first pose (when it has ground truth).
 
     ``deskew`` (raw, motion-distorted scans): KISS-ICP de-skews each scan itself, with per-point
     times from the azimuth (:func:`graffmatch.lidar.deskew.azimuth_times`: the sweep starts
@@ -403,7 +403,10 @@ def kiss_icp_odometry(dataset, deskew: bool = False) -> Array:
         odo.register_frame(pts, azimuth_times(pts) + 0.5 if deskew else np.zeros(0))
         T = np.asarray(odo.last_pose, float).copy()
         poses.append(T @ kiss_end_to_mid(delta) if deskew else T)
-    P0 = np.asarray(dataset.poses[0], float)
+    from graffmatch.datasets.base import has_ground_truth
+
+    # in the ground truth's frame when there is one (so ATE compares like with like), else scan 0's
+    P0 = np.asarray(dataset.poses[0], float) if has_ground_truth(dataset) else np.eye(4)
     return np.stack([P0 @ T for T in poses])
 
 

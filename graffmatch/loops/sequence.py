@@ -36,7 +36,7 @@ import yaml
 from numpy.typing import NDArray
 
 from graffmatch.atomic_files import write_bytes_atomic
-from graffmatch.datasets.base import Dataset
+from graffmatch.datasets.base import ASSUMED_SCAN_RATE_HZ, Dataset
 from graffmatch.errors import InvalidInputError, MalformedFileError
 from graffmatch.evaluation.executors import make_executor
 from graffmatch.geometry.pose_files import write_kitti, write_tum
@@ -382,6 +382,13 @@ def build_database(
     times = np.asarray(getattr(dataset, "timestamps", np.arange(n, dtype=float)), float)
     if np.any(np.diff(times) < 0):
         raise InvalidInputError(f"{getattr(dataset, 'name', 'dataset')}: timestamps decrease")
+    if getattr(dataset, "times_assumed", False) and config.retrieval.exclude_seconds > 0:
+        warnings.warn(
+            f"{getattr(dataset, 'name', 'dataset')}: no times.txt, so its scans are taken as {ASSUMED_SCAN_RATE_HZ:g} Hz "
+            f"for the {config.retrieval.exclude_seconds:g} s exclusion window; add times.txt, or give the window in "
+            "frames (--exclude-frames, with --exclude-seconds 0)",
+            stacklevel=2,
+        )
     for i in range(n):
         ls = load_landmarks(lm_dir / f"{i:06d}.npz")
         extra = {"scan": load_scan_cloud(lm_dir / f"{i:06d}.npz") if config.verification.scan_cloud_below > 0 else None}

@@ -20,7 +20,7 @@ from graffmatch.datasets import (
 )
 from graffmatch.datasets.folder import ground_truth_between
 from graffmatch.datasets.nclt import nclt_body_to_velo, ssc_to_transform, write_nclt_bin
-from graffmatch.errors import InvalidInputError, MalformedFileError
+from graffmatch.errors import InvalidInputError, MalformedFileError, MissingPosesError
 from graffmatch.geometry.transforms import (
     invert,
     make_transform,
@@ -156,13 +156,33 @@ def test_kitti_layout_errors(kitti_root, tmp_path: Path) -> None:
         open_dataset("tum", root)
 
 
+def test_scans_without_poses_load_and_say_what_needs_them(kitti_root, tmp_path: Path, rng) -> None:
+    """A user's folder of scans alone, and a KITTI test sequence (11-21: no poses), load; asking for the ground truth
+    raises MissingPosesError naming the file looked for, never a silent identity."""
+    for i, s in enumerate(_random_scans(rng, 3)):
+        _write_bin(tmp_path / "velodyne" / f"{i:06d}.bin", s)
+    (tmp_path / "times.txt").write_text("0.0\n0.1\n0.2\n")
+    ds = KittiFolder(tmp_path)
+    assert not ds.has_poses and not ds.times_assumed and len(ds) == 3
+    assert ds[1].T_world_lidar is None and np.isclose(ds[1].timestamp, 0.1) and "unknown" in repr(ds[1])
+    with pytest.raises(MissingPosesError, match=r"poses.txt not found.*--odometry kiss-icp"):
+        _ = ds.poses
+    root, _, _ = kitti_root
+    (root / "poses" / "03.txt").unlink()
+    k = KittiOdometry(root, "03")
+    assert not k.has_poses and k[0].T_world_lidar is None
+    with pytest.raises(MissingPosesError, match=r"poses/03.txt or .*sequences/03/poses.txt not found"):
+        _ = k.poses
+
+
 def test_folder_without_calib_and_truncated_scan(tmp_path: Path, rng) -> None:
     T = _random_poses(rng, 2)
     for i, s in enumerate(_random_scans(rng, 2)):
         _write_bin(tmp_path / "velodyne" / f"{i:06d}.bin", s)
     (tmp_path / "poses.txt").write_text(_rows(T))
     ds = KittiFolder(tmp_path)
-    assert np.allclose(ds.poses, T, atol=1e-9) and np.array_equal(ds.timestamps, [0.0, 1.0])
+    # no times.txt: frame numbers at the assumed 10 Hz, said, so a window in seconds never counts frames
+    assert np.allclose(ds.poses, T, atol=1e-9) and np.allclose(ds.timestamps, [0.0, 0.1]) and ds.times_assumed
     with open(tmp_path / "velodyne" / "000001.bin", "ab") as f:
         f.write(b"\x00\x00")
     with pytest.raises(MalformedFileError):

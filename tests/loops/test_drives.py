@@ -285,3 +285,42 @@ def test_kernel_warm_up_is_kept_out_of_query_times_and_changes_no_loop(drives, t
     assert strip(r_warm) == strip(r_none) and len(r_warm) == N_SCANS
     assert s_warm["n_loops"] == s_none["n_loops"] == summary["n_loops"] > 0
     assert (tmp_path / "warm-up" / "loops.csv").read_bytes() == (tmp_path / "none" / "loops.csv").read_bytes()
+
+
+def test_a_drive_without_poses_gives_the_same_loops_and_odometry_from_a_file(drives, tmp_path):
+    """A user's folder of scans alone (no poses.txt): `graffmatch loops` finds the same loops as with the ground truth
+    (no odometry is loaded by default, so the poses never entered), the pose graph runs from an odometry file with
+    no ATE claimed, and simulated drift, which needs ground truth, is refused with the way out named."""
+    import shutil
+
+    from typer.testing import CliRunner
+
+    from graffmatch.cli.main import app
+
+    ds, out, _ = drives["rev"]
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for sub in ("velodyne", "labels"):  # the same files: the extraction cache applies
+        (bare / sub).symlink_to(ds.root / sub)
+    shutil.copy(ds.root / "times.txt", bare / "times.txt")
+    nd = open_dataset("folder", bare)
+    assert not nd.has_poses and nd[3].T_world_lidar is None
+    target = tmp_path / "cli"
+    shutil.copytree(out / "landmarks", target / "landmarks")
+    args = ["-q", "loops", str(bare), "-o", str(target), "--exclude-seconds", "0", "--exclude-frames", "30",
+            "--workers", "1"]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    with_gt = [(c.query, c.match, round(c.confidence, 9)) for c in read_loops_csv(out / "loops.csv")]
+    assert with_gt and [(c.query, c.match, round(c.confidence, 9)) for c in read_loops_csv(target / "loops.csv")] == with_gt
+    odo_file = tmp_path / "odometry.txt"
+    from graffmatch.geometry.pose_files import write_kitti
+
+    write_kitti(odo_file, ds.poses)
+    res = CliRunner().invoke(app, [*args, "--optimize", "--odometry", str(odo_file)])
+    assert res.exit_code == 0, res.output
+    pg = json.loads((target / "summary.json").read_text())["posegraph"]
+    assert "before" not in pg and "after" not in pg  # no ground truth, no ATE
+    assert len(read_kitti(target / "optimized_kitti.txt")) == N_SCANS
+    res = CliRunner().invoke(app, [*args, "--optimize", "--odometry", "drift"])
+    assert res.exit_code != 0 and "poses.txt not found" in res.output and "--odometry kiss-icp" in res.output
