@@ -178,6 +178,9 @@ def loops(
         odometry = "drift" if has_ground_truth(ds) else "kiss-icp"
         if need_odometry and odometry == "kiss-icp":
             info(f"{sequence}: no ground-truth poses, so the odometry comes from the scans (KISS-ICP)")
+    if not deskew and getattr(ds, "motion_compensated", None) is None:  # smear cannot be read off the scans
+        info(f"{sequence}: the data does not say whether its scans are de-skewed; raw scans of a moving vehicle "
+             "need --deskew (docs/loops.md, session 25)")
     ds, odo = prepare_drive(ds, odometry if need_odometry else None, deskew,
                             OdometryDriftConfig(yaw_bias_deg_per_100m=drift_yaw, seed=drift_seed))
     with make_progress() as progress:

@@ -309,8 +309,9 @@ def test_a_drive_without_poses_gives_the_same_loops_and_odometry_from_a_file(dri
     shutil.copytree(out / "landmarks", target / "landmarks")
     args = ["-q", "loops", str(bare), "-o", str(target), "--exclude-seconds", "0", "--exclude-frames", "30",
             "--workers", "1"]
-    res = CliRunner().invoke(app, args)
+    res = CliRunner().invoke(app, [a for a in args if a != "-q"])
     assert res.exit_code == 0, res.output
+    assert "does not say whether its scans are de-skewed" in " ".join(res.output.split())  # smear: the user's to say
     with_gt = [(c.query, c.match, round(c.confidence, 9)) for c in read_loops_csv(out / "loops.csv")]
     assert with_gt and [(c.query, c.match, round(c.confidence, 9)) for c in read_loops_csv(target / "loops.csv")] == with_gt
     odo_file = tmp_path / "odometry.txt"
@@ -324,3 +325,23 @@ def test_a_drive_without_poses_gives_the_same_loops_and_odometry_from_a_file(dri
     assert len(read_kitti(target / "optimized_kitti.txt")) == N_SCANS
     res = CliRunner().invoke(app, [*args, "--optimize", "--odometry", "drift"])
     assert res.exit_code != 0 and "poses.txt not found" in res.output and "--odometry kiss-icp" in res.output
+
+
+def test_a_drive_without_times_is_taken_as_10_hz_and_said(drives, tmp_path):
+    """Without times.txt the scans are 0.1 s apart (not frame numbers read as seconds, which made the 10 s exclusion
+    window 10 frames), and building the database says so."""
+    import shutil
+
+    from graffmatch.loops.sequence import build_database
+
+    ds, out, _ = drives["rev"]
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for sub in ("velodyne", "labels"):
+        (bare / sub).symlink_to(ds.root / sub)
+    nd = open_dataset("folder", bare)
+    assert nd.times_assumed and np.allclose(np.diff(nd.timestamps), 0.1)
+    shutil.copytree(out / "landmarks", tmp_path / "run" / "landmarks")
+    with pytest.warns(UserWarning, match=r"no times.txt, so its scans are taken as 10 Hz for the 10 s exclusion"):
+        db, stats = build_database(nd, tmp_path / "run", LoopDetectorConfig(), workers=1)
+    assert stats["extracted"] == 0 and np.allclose(db.timestamps[:3], [0.0, 0.1, 0.2])
