@@ -10,6 +10,10 @@ pose within ``consistency_max_m`` / ``consistency_max_deg``. Only short odometry
 (q -> q', m -> m'), so a drifting odometry suffices. Two independent verifications of different
 scans rarely agree on a wrong place by chance. Without odometry nothing changes.
 
+Before either, a loop on fewer than ``min_agreeing`` agreeing landmarks must lie within the odometry's drift allowance
+(the one below) of where the odometry puts its query (:func:`gate_weak_loops`): weak evidence may not move a query
+tens of metres from its odometry, and slid loops of consecutive queries could otherwise confirm one another.
+
 With every candidate verified (``--all-loops``) a query can have several loops; each says where the query was (the
 match's odometry pose times the loop). A loop whose place disagrees with more of the query's other loops than agree
 with it (beyond the odometry's drift between the two matches: ``OUTVOTE_M`` + ``OUTVOTE_PATH_FRACTION`` of the path, and
@@ -62,10 +66,7 @@ def drop_outvoted_loops(records: dict[int, dict], odometry: NDArray | None, min_
     One loop a query (the default early stop) and ties change nothing. The records are not modified in place."""
     if odometry is None:
         return records
-    P = np.asarray(odometry, float)
-    if P.ndim != 3 or P.shape[1:] != (4, 4):
-        raise InvalidInputError(f"odometry must be (n, 4, 4) poses, got shape {P.shape}")
-    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1))])
+    P, path = _odometry_path(odometry)
     out = dict(records)
     for q, r in records.items():
         acc = [k for k, c in enumerate(r["candidates"]) if c.get("T") is not None and c["confidence"] >= min_confidence]
@@ -82,9 +83,7 @@ def drop_outvoted_loops(records: dict[int, dict], odometry: NDArray | None, min_
                 if k2 == k:
                     continue
                 m2 = int(r["candidates"][k2]["match"])
-                along = abs(path[m] - path[m2])
-                deg = rotation_error_deg(place[k], place[k2])
-                if np.linalg.norm(place[k][:3, 3] - place[k2][:3, 3]) > OUTVOTE_M + OUTVOTE_PATH_FRACTION * along or deg > OUTVOTE_DEG + OUTVOTE_DEG_PER_M * along:
+                if beyond_drift(place[k], place[k2], abs(path[m] - path[m2])) is not None:
                     against.append(m2)
             if len(against) > len(acc) - 1 - len(against):
                 if out[q] is records[q]:
@@ -93,11 +92,55 @@ def drop_outvoted_loops(records: dict[int, dict], odometry: NDArray | None, min_
     return out if any(out[q] is not records[q] for q in records) else records
 
 
+def _odometry_path(odometry: NDArray) -> tuple[NDArray, NDArray]:
+    P = np.asarray(odometry, float)
+    if P.ndim != 3 or P.shape[1:] != (4, 4):
+        raise InvalidInputError(f"odometry must be (n, 4, 4) poses, got shape {P.shape}")
+    return P, np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P[:, :3, 3], axis=0), axis=1))])
+
+
+def beyond_drift(place: NDArray, where: NDArray, along_m: float) -> tuple[float, float] | None:
+    """(m, deg) by which two poses of one scan disagree when that exceeds the odometry's drift over ``along_m`` of
+    path (``OUTVOTE_*``), else None."""
+    dt = float(np.linalg.norm(place[:3, 3] - where[:3, 3]))
+    dr = rotation_error_deg(place[:3, :3], where[:3, :3])
+    if dt > OUTVOTE_M + OUTVOTE_PATH_FRACTION * along_m or dr > OUTVOTE_DEG + OUTVOTE_DEG_PER_M * along_m:
+        return dt, dr
+    return None
+
+
+def gate_weak_loops(records: dict[int, dict], odometry: NDArray | None, config: VerificationConfig) -> dict[int, dict]:
+    """Records in which every verified candidate on fewer than ``config.min_agreeing`` agreeing landmarks that puts its
+    query beyond the odometry's drift allowance of the odometry's own pose (:func:`beyond_drift`, over the odometry path
+    between the two scans) has confidence 0 and ``odometry_disagrees`` = [m, deg]; such a candidate confirms no other
+    (:func:`_confirm_weak_loops`). Without odometry, or with ``config.odometry_gate`` off, nothing changes. The records
+    are not modified in place."""
+    if odometry is None or not config.odometry_gate:
+        return records
+    P, path = _odometry_path(odometry)
+    out = dict(records)
+    for q, r in records.items():
+        for k, c in enumerate(r["candidates"]):
+            if c.get("T") is None or int(c.get("n_agreeing", 0)) >= config.min_agreeing:
+                continue
+            m = int(c["match"])
+            if max(int(q), m) >= len(P):
+                raise InvalidInputError(f"odometry has {len(P)} poses; the records reach scan {max(int(q), m)}")
+            off = beyond_drift(P[m] @ np.asarray(c["T"], float).reshape(4, 4), P[int(q)], abs(path[int(q)] - path[m]))
+            if off is None:
+                continue
+            if out[q] is records[q]:
+                out[q] = {**records[q], "candidates": list(records[q]["candidates"])}
+            out[q]["candidates"][k] = {**c, "confidence": 0.0, "odometry_disagrees": [round(off[0], 3), round(off[1], 3)]}
+    return out if any(out[q] is not records[q] for q in records) else records
+
+
 def apply_sequence_consistency(
     records: dict[int, dict], odometry: NDArray | None, config: VerificationConfig
 ) -> dict[int, dict]:
-    """Records with the weak loops that a neighbouring query's loop confirms accepted, then the loops their query's
-    other loops outvote dropped (:func:`drop_outvoted_loops`).
+    """Records with weak loops far from the odometry refused (:func:`gate_weak_loops`), the weak loops that a
+    neighbouring query's loop confirms accepted, then the loops their query's other loops outvote dropped
+    (:func:`drop_outvoted_loops`).
 
     ``records``: query -> record (``queries.jsonl``), candidates as :func:`verify_query` wrote
     them; only verified ones count. A candidate is weak when its confidence is below
@@ -105,23 +148,23 @@ def apply_sequence_consistency(
     pair verified on points. A confirmed weak candidate gets that confidence and
     ``consistent_with`` = [q', m']; nothing else changes. The records are not modified in place.
     """
-    return drop_outvoted_loops(_confirm_weak_loops(records, odometry, config), odometry, config.min_confidence)
+    gated = gate_weak_loops(records, odometry, config)
+    return drop_outvoted_loops(_confirm_weak_loops(gated, odometry, config), odometry, config.min_confidence)
 
 
 def _confirm_weak_loops(records: dict[int, dict], odometry: NDArray | None, config: VerificationConfig
                         ) -> dict[int, dict]:
     if odometry is None or config.consistency_window <= 0:
         return records
-    P = np.asarray(odometry, float)
-    if P.ndim != 3 or P.shape[1:] != (4, 4):
-        raise InvalidInputError(f"odometry must be (n, 4, 4) poses, got shape {P.shape}")
+    P, _ = _odometry_path(odometry)
     relaxed = config.model_copy(update={"points_min_agreeing": min(config.points_min_agreeing,
                                                                    config.consistency_min_agreeing)})
     strong: dict[int, list[tuple[int, NDArray]]] = {}
     weak: dict[tuple[int, int], float] = {}
     for q, r in records.items():
         for k, c in enumerate(r["candidates"]):
-            if c.get("T") is None or not c.get("verified", True) or not c.get("matcher_valid", False):
+            if (c.get("T") is None or not c.get("verified", True) or not c.get("matcher_valid", False)
+                    or c.get("odometry_disagrees") is not None):
                 continue
             if int(q) >= len(P) or int(c["match"]) >= len(P):
                 raise InvalidInputError(f"odometry has {len(P)} poses; the records reach scan "

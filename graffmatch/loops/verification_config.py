@@ -195,6 +195,13 @@ class VerificationConfig(BaseModel):
         "many frames away has a loop that agrees with it through the odometry (loops/consistency.py); "
         "0: off",
     )
+    odometry_gate: bool = Field(
+        True,
+        description="with odometry: a loop on fewer than min_agreeing agreeing landmarks (few-landmark, points, "
+        "raw-scan and sequence-consistent loops) is refused when it lies beyond the odometry's drift allowance "
+        "(5 m + 2 % of the path between the scans, 10 deg + 3 deg / 100 m) of where the odometry puts its query "
+        "(loops/consistency.py; docs/loops.md, session 25)",
+    )
     consistency_min_agreeing: int = Field(
         CONSISTENCY_MIN_AGREEING, ge=1, description="fewest agreeing landmarks of such a weak loop"
     )
