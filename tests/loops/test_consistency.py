@@ -170,3 +170,53 @@ def test_a_loop_its_query_s_other_loops_outvote_is_dropped_ties_and_single_loops
     assert drop_outvoted_loops({q: {"query": q, "candidates": cands}}, None, 0.5)[q]["candidates"] == cands
     with pytest.raises(InvalidInputError, match="odometry"):
         drop_outvoted_loops({q: {"query": q, "candidates": cands}}, odo[:20], 0.5)
+
+
+def _slid(T: np.ndarray, metres: float) -> np.ndarray:
+    """A loop pose that puts the query ``metres`` farther along the street than it was."""
+    S = np.eye(4)
+    S[0, 3] = metres
+    return S @ T
+
+
+@pytest.mark.parametrize("n_agreeing", [0, 4, 5])
+def test_odometry_gate_refuses_weak_loops_far_from_the_odometry_and_keeps_right_ones(n_agreeing) -> None:
+    """Rule v1 (docs/loops.md, session 25): a loop on fewer than min_agreeing agreeing landmarks that puts its query
+    35 m from the drifting odometry's pose (the suburban-s1 slide) is refused, with the disagreement recorded; the
+    same loop with 6 agreeing landmarks, a right weak loop 60 scans of drift later, and runs without odometry or with
+    the gate off are untouched."""
+    gt, odo = _drive()
+    T = {q: invert(gt[119 - q]) @ gt[q] for q in range(60, 120)}
+    cfg = _config()
+    recs = {
+        100: {"query": 100, "candidates": [_cand(19, _slid(T[100], 35.0), n_agreeing, confidence=0.7)]},
+        101: {"query": 101, "candidates": [_cand(18, _slid(T[101], 35.0), 6, confidence=0.7, on_points=False)]},
+        110: {"query": 110, "candidates": [_cand(9, T[110], n_agreeing, confidence=0.7)]},
+    }
+    out = apply_sequence_consistency(recs, odo, cfg)
+    gated = out[100]["candidates"][0]
+    assert gated["confidence"] == 0.0 and 34.0 < gated["odometry_disagrees"][0] < 36.5
+    assert out[101]["candidates"][0]["confidence"] == 0.7 and "odometry_disagrees" not in out[101]["candidates"][0]
+    assert out[110]["candidates"][0]["confidence"] == 0.7  # right: within 5 m + 2 % of ~100 m of 3 deg/100 m drift
+    assert recs[100]["candidates"][0]["confidence"] == 0.7  # not modified in place
+    assert apply_sequence_consistency(recs, None, cfg)[100]["candidates"][0]["confidence"] == 0.7
+    off = apply_sequence_consistency(recs, odo, _config(odometry_gate=False))
+    assert off[100]["candidates"][0]["confidence"] == 0.7
+
+
+def test_slid_weak_loops_of_consecutive_queries_no_longer_confirm_one_another() -> None:
+    """The suburban-s1 failure: five consecutive queries slid the same 35 m along the road agree with one another
+    through the odometry, so sequence consistency confirmed them all; gated, none is accepted, and a right weak loop
+    beside them is still confirmed by its right neighbour."""
+    gt, odo = _drive()
+    T = {q: invert(gt[119 - q]) @ gt[q] for q in range(60, 120)}
+    cfg = _config(max_translation_m=None)  # `graffmatch loops`' default: no place radius
+    recs = {q: {"query": q, "candidates": [_cand(119 - q, _slid(T[q], 35.0), 4)]} for q in range(90, 95)}
+    recs[70] = {"query": 70, "candidates": [_cand(49, T[70], 4)]}
+    recs[71] = {"query": 71, "candidates": [_cand(48, T[71], 9, confidence=0.85, on_points=False)]}
+    ungated = apply_sequence_consistency(recs, odo, _config(max_translation_m=None, odometry_gate=False))
+    assert all(ungated[q]["candidates"][0]["confidence"] >= cfg.min_confidence for q in range(90, 95))
+    out = apply_sequence_consistency(recs, odo, cfg)
+    assert all(out[q]["candidates"][0]["confidence"] == 0.0 for q in range(90, 95))
+    assert out[70]["candidates"][0]["confidence"] >= cfg.min_confidence
+    assert out[70]["candidates"][0]["consistent_with"] == [71, 48]
