@@ -299,10 +299,9 @@ class LoopDetector:
         return self._per_scan("own_quick", i, lambda: quick_index(self.db.landmarks[i], self.config.quick))
 
     def _consistent(self, query: int, recs: list[dict]) -> list[dict]:
-        """The query's records with its weak loops that an earlier query's loop confirms."""
-        W = self.config.verification.consistency_window
-        if W <= 0:
-            return recs
+        """The query's records after the odometry's post-pass (given poses): weak loops far from the odometry
+        refused, weak loops that an earlier query's loop confirms accepted (``apply_sequence_consistency``)."""
+        W = max(self.config.verification.consistency_window, 0)
         self._recent[query] = {"query": query, "candidates": recs}
         for q in [q for q in self._recent if q < query - W]:
             del self._recent[q]

@@ -532,6 +532,11 @@ def run_loops(
         "n_candidates_retrieved": n_retrieved,
         "n_candidates_verified": n_verified,
         "n_loops_sequence_consistent": sum(lc.info.get("consistent_with") is not None for lc in loops),
+        # verified loops that the odometry gate refused (weak evidence tens of metres from the odometry)
+        "n_loops_refused_by_odometry": sum(
+            c.get("odometry_disagrees") is not None and float(done[q]["candidates"][k]["confidence"])
+            >= config.verification.min_confidence
+            for q, r in final.items() for k, c in enumerate(r["candidates"])),
         "n_scans_on_local_maps": len(local_ids),
         "quick_index_cpu_s": sum(r.get("index_s", 0.0) for r in done.values()),
         "worker_warmup_cpu_s": sum(r.get("warmup_cpu_s", 0.0) for r in done.values()),  # numba kernels, not in queries

@@ -220,3 +220,19 @@ def test_slid_weak_loops_of_consecutive_queries_no_longer_confirm_one_another() 
     assert all(out[q]["candidates"][0]["confidence"] == 0.0 for q in range(90, 95))
     assert out[70]["candidates"][0]["confidence"] >= cfg.min_confidence
     assert out[70]["candidates"][0]["consistent_with"] == [71, 48]
+
+
+def test_online_detector_gates_weak_loops_also_without_sequence_consistency() -> None:
+    """`LoopDetector.add(..., pose=)` applies the same post-pass; the gate does not hang on the consistency window."""
+    from graffmatch.loops import LoopDetector, LoopDetectorConfig
+
+    gt, odo = _drive()
+    T = invert(gt[19]) @ gt[100]
+    cfg = LoopDetectorConfig()
+    cfg.verification.consistency_window = 0
+    det = LoopDetector(cfg)
+    det._poses = list(odo[:101])
+    slid = det._consistent(100, [_cand(19, _slid(T, 35.0), 5, confidence=0.7)])
+    right = det._consistent(100, [_cand(19, T, 5, confidence=0.7)])
+    assert slid[0]["confidence"] == 0.0 and slid[0]["odometry_disagrees"][0] > 34.0
+    assert right[0]["confidence"] == 0.7
