@@ -135,6 +135,13 @@ def gate_weak_loops(records: dict[int, dict], odometry: NDArray | None, config: 
     return out if any(out[q] is not records[q] for q in records) else records
 
 
+def refused_by_odometry(before: dict[int, dict], after: dict[int, dict], min_confidence: float) -> int:
+    """How many verified loops (confidence >= ``min_confidence`` in ``before``) :func:`gate_weak_loops` refused in
+    ``after``: weak evidence tens of metres from the odometry."""
+    return sum(c.get("odometry_disagrees") is not None and float(before[q]["candidates"][k]["confidence"]) >= min_confidence
+               for q, r in after.items() for k, c in enumerate(r["candidates"]))
+
+
 def apply_sequence_consistency(
     records: dict[int, dict], odometry: NDArray | None, config: VerificationConfig
 ) -> dict[int, dict]:

@@ -40,7 +40,7 @@ from graffmatch.datasets.base import ASSUMED_SCAN_RATE_HZ, Dataset
 from graffmatch.errors import InvalidInputError, MalformedFileError
 from graffmatch.evaluation.executors import make_executor
 from graffmatch.geometry.pose_files import write_kitti, write_tum
-from graffmatch.loops.consistency import apply_sequence_consistency
+from graffmatch.loops.consistency import apply_sequence_consistency, refused_by_odometry
 from graffmatch.loops.database import (
     POINT_QUANTUM_M,
     LandmarkDatabase,
@@ -532,11 +532,7 @@ def run_loops(
         "n_candidates_retrieved": n_retrieved,
         "n_candidates_verified": n_verified,
         "n_loops_sequence_consistent": sum(lc.info.get("consistent_with") is not None for lc in loops),
-        # verified loops that the odometry gate refused (weak evidence tens of metres from the odometry)
-        "n_loops_refused_by_odometry": sum(
-            c.get("odometry_disagrees") is not None and float(done[q]["candidates"][k]["confidence"])
-            >= config.verification.min_confidence
-            for q, r in final.items() for k, c in enumerate(r["candidates"])),
+        "n_loops_refused_by_odometry": refused_by_odometry(done, final, config.verification.min_confidence),
         "n_scans_on_local_maps": len(local_ids),
         "quick_index_cpu_s": sum(r.get("index_s", 0.0) for r in done.values()),
         "worker_warmup_cpu_s": sum(r.get("warmup_cpu_s", 0.0) for r in done.values()),  # numba kernels, not in queries

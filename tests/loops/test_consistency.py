@@ -8,7 +8,11 @@ import pytest
 
 from graffmatch.errors import InvalidInputError
 from graffmatch.geometry.transforms import invert
-from graffmatch.loops.consistency import apply_sequence_consistency, loop_pair_residual
+from graffmatch.loops.consistency import (
+    apply_sequence_consistency,
+    loop_pair_residual,
+    refused_by_odometry,
+)
 from graffmatch.loops.verify import VerificationConfig
 
 
@@ -199,6 +203,7 @@ def test_odometry_gate_refuses_weak_loops_far_from_the_odometry_and_keeps_right_
     assert out[101]["candidates"][0]["confidence"] == 0.7 and "odometry_disagrees" not in out[101]["candidates"][0]
     assert out[110]["candidates"][0]["confidence"] == 0.7  # right: within 5 m + 2 % of ~100 m of 3 deg/100 m drift
     assert recs[100]["candidates"][0]["confidence"] == 0.7  # not modified in place
+    assert refused_by_odometry(recs, out, cfg.min_confidence) == 1  # what run_loops' summary reports
     assert apply_sequence_consistency(recs, None, cfg)[100]["candidates"][0]["confidence"] == 0.7
     off = apply_sequence_consistency(recs, odo, _config(odometry_gate=False))
     assert off[100]["candidates"][0]["confidence"] == 0.7
