@@ -75,14 +75,6 @@ class PoseGraphConfig(BaseModel):
         1e-3, gt=0, description="projection: stop when the bias moves less than this [deg / 100 m]"
     )
     bias_max_solves: int = Field(12, ge=2, description="projection: at most this many pose-graph solves")
-    odometry_kernel_k: float | None = Field(
-        None, gt=0, description="Cauchy kernel width on whitened odometry residuals, so a broken odometry step (a "
-        "LiDAR odometry that lost track) can yield to the loops; None: quadratic odometry (docs/loops.md, session 25)",
-    )
-    chordal_start: bool = Field(
-        False, description="also start from GTSAM's chordal initialisation (InitializePose3) and keep whichever start "
-        "ends at the lower graph error: odometry tens of degrees off is no start for a robust kernel",
-    )
 
 
 class OdometryDriftConfig(BaseModel):
@@ -181,19 +173,13 @@ def _corrected(gtsam, Z3, step: float, w: float):
     return Z3.compose(gtsam.Pose3(gtsam.Rot3.Rz(-step * w), np.zeros(3)))
 
 
-def _odometry_noise(gtsam, sig: Array, k: float | None):
-    base = gtsam.noiseModel.Diagonal.Sigmas(sig)
-    return base if k is None else gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(k), base)
-
-
-def _plain_graph(gtsam, P0: Array, steps, loops, w: float, odom_k: float | None = None):
-    """Prior, odometry edges corrected by a fixed heading rate ``w`` (in a Cauchy kernel of width ``odom_k``), loop
-    edges: C++ factors only."""
+def _plain_graph(gtsam, P0: Array, steps, loops, w: float):
+    """Prior, odometry edges corrected by a fixed heading rate ``w``, loop edges: C++ factors only."""
     graph = gtsam.NonlinearFactorGraph()
     graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(P0), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
     for i, (Z3, _, step, sig) in enumerate(steps):
         Zb = Z3 if w == 0.0 else _corrected(gtsam, Z3, step, w)
-        graph.add(gtsam.BetweenFactorPose3(i, i + 1, Zb, _odometry_noise(gtsam, sig, odom_k)))
+        graph.add(gtsam.BetweenFactorPose3(i, i + 1, Zb, gtsam.noiseModel.Diagonal.Sigmas(sig)))
     for f in loops:
         graph.add(f)
     return graph
@@ -206,11 +192,9 @@ def _lm(gtsam, graph, initial, cfg: PoseGraphConfig):
     return opt.optimize(), int(opt.iterations())
 
 
-def _bias_gradient(gtsam, values, steps, w: float, prior_var: float,
-                   odom_k: float | None = None) -> tuple[float, float]:
+def _bias_gradient(gtsam, values, steps, w: float, prior_var: float) -> tuple[float, float]:
     """dF/dw at the poses ``values`` (optimal for this w) and the curvature with the poses held
-    (sum de'W de + 1/prior_var, an upper bound of d2F/dw2: the poses' adaptation only lowers it); with a Cauchy
-    kernel on the odometry each edge counts with the kernel's weight 1 / (1 + r^2 / k^2) (r: its whitened residual)."""
+    (sum de'W de + 1/prior_var, an upper bound of d2F/dw2: the poses' adaptation only lowers it)."""
     g, h = w / prior_var, 1.0 / prior_var
     Hz, Hx = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
     Xk = values.atPose3(0)
@@ -219,8 +203,6 @@ def _bias_gradient(gtsam, values, steps, w: float, prior_var: float,
         e = _corrected(gtsam, Z3, step, w).localCoordinates(Xk.between(Xn), Hz, Hx)
         de = -step * Hz[:, 2]  # d Z(w)/dw = -step e_z as a right perturbation (see _odometry_bias_factor)
         wde = de / sig**2
-        if odom_k is not None:
-            wde = wde / (1.0 + float(np.sum((e / sig) ** 2)) / odom_k**2)
         g += float(e @ wde)
         h += float(de @ wde)
         Xk = Xn
@@ -232,11 +214,10 @@ def _solve_bias_projection(gtsam, P: Array, steps, loops, initial, cfg: PoseGrap
     sigma = np.radians(cfg.bias_prior_deg_per_100m) / 100.0
     tol = np.radians(cfg.bias_tolerance_deg_per_100m) / 100.0
     iters = 0
-    k = cfg.odometry_kernel_k
-    values, it = _lm(gtsam, _plain_graph(gtsam, P[0], steps, loops, 0.0, k), initial, cfg)
+    values, it = _lm(gtsam, _plain_graph(gtsam, P[0], steps, loops, 0.0), initial, cfg)
     iters += it
     w = 0.0
-    g, h = _bias_gradient(gtsam, values, steps, w, sigma**2, k)
+    g, h = _bias_gradient(gtsam, values, steps, w, sigma**2)
     lo, hi = -np.inf, np.inf  # bracket of the root of dF/dw, from the signs seen
     w_prev = g_prev = None
     converged = False
@@ -260,29 +241,15 @@ def _solve_bias_projection(gtsam, P: Array, steps, loops, initial, cfg: PoseGrap
             break
         if solves >= cfg.bias_max_solves:
             break
-        values_new, it = _lm(gtsam, _plain_graph(gtsam, P[0], steps, loops, w_new, k), values, cfg)
+        values_new, it = _lm(gtsam, _plain_graph(gtsam, P[0], steps, loops, w_new), values, cfg)
         iters += it
         solves += 1
         w_prev, g_prev = w, g
         w, values = w_new, values_new
-        g, h = _bias_gradient(gtsam, values, steps, w, sigma**2, k)
-    graph = _plain_graph(gtsam, P[0], steps, loops, w, k)
+        g, h = _bias_gradient(gtsam, values, steps, w, sigma**2)
+    graph = _plain_graph(gtsam, P[0], steps, loops, w)
     error = float(graph.error(values) + 0.5 * (w / sigma) ** 2)
     return values, w, {"iterations": iters, "bias_solves": solves, "bias_converged": converged, "error_after": error}
-
-
-def _better_start(gtsam, graph, initial, cfg: PoseGraphConfig):
-    """(values, 'odometry' | 'chordal'): LM (no bias) from the odometry and from GTSAM's chordal initialisation, the
-    solution of lower ``graph`` error; the odometry's when the chordal initialisation fails."""
-    from_odometry, _ = _lm(gtsam, graph, initial, cfg)
-    try:
-        chordal = gtsam.InitializePose3.initialize(graph, initial, True)
-    except RuntimeError:
-        return from_odometry, "odometry"
-    from_chordal, _ = _lm(gtsam, graph, chordal, cfg)
-    if graph.error(from_chordal) < graph.error(from_odometry):
-        return from_chordal, "chordal"
-    return from_odometry, "odometry"
 
 
 def optimize_pose_graph(
@@ -310,10 +277,8 @@ def optimize_pose_graph(
     steps = _odometry_steps(gtsam, P, cfg)
     loops = _loop_factors(gtsam, loop_edges, n, cfg)
     bias = cfg.estimate_odometry_bias and len(loop_edges) > 0
-    plain0 = _plain_graph(gtsam, P[0], steps, loops, 0.0, cfg.odometry_kernel_k)
+    plain0 = _plain_graph(gtsam, P[0], steps, loops, 0.0)
     summary: dict = {"n_poses": n, "n_loop_edges": len(loop_edges), "error_before": float(plain0.error(initial))}
-    if cfg.chordal_start and loops:
-        initial, summary["start"] = _better_start(gtsam, plain0, initial, cfg)
     if not bias:
         result, iters = _lm(gtsam, plain0, initial, cfg)
         summary.update(error_after=float(plain0.error(result)), iterations=iters)
@@ -328,7 +293,7 @@ def optimize_pose_graph(
         prior = np.array([np.radians(cfg.bias_prior_deg_per_100m) / 100.0])
         graph.add(gtsam.PriorFactorVector(BIAS_KEY, np.zeros(1), gtsam.noiseModel.Diagonal.Sigmas(prior)))
         for i, (_, rel, step, sig) in enumerate(steps):
-            graph.add(_odometry_bias_factor(gtsam, i, i + 1, rel, step, _odometry_noise(gtsam, sig, cfg.odometry_kernel_k)))
+            graph.add(_odometry_bias_factor(gtsam, i, i + 1, rel, step, gtsam.noiseModel.Diagonal.Sigmas(sig)))
         for f in loops:
             graph.add(f)
         result, iters = _lm(gtsam, graph, initial, cfg)
