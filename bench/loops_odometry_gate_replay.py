@@ -17,6 +17,7 @@ from graffmatch.datasets.registry import open_dataset
 from graffmatch.evaluation.sequence_benchmark import (
     MethodRun,
     Prediction,
+    best_predictions,
     evaluate_method,
     pose_errors,
 )
@@ -44,12 +45,7 @@ def score(mode: str, ds, gt, records, odo, cfg, gate: bool) -> tuple[dict, set]:
     out = {"loops": len(loops), "pose_right": int(right.sum()), "pose_wrong": int((~right).sum()),
            "gated": sum(c.get("odometry_disagrees") is not None for r in final.values() for c in r["candidates"])}
     if mode in "bk":  # the benchmark's protocol: the most confident candidate per query
-        best = []
-        for q, r in final.items():
-            cs = [c for c in r["candidates"] if c["T"] is not None]
-            if cs:
-                c = max(cs, key=lambda c: (c["confidence"], -c["rank"]))
-                best.append(Prediction(q, c["match"], c["confidence"], np.asarray(c["T"]).reshape(4, 4)))
+        best = best_predictions(final)
         res = evaluate_method(MethodRun("ours", best, 0.0), gt, np.asarray(ds.timestamps), cfg.retrieval)
         out["e2e_r100p"] = round(res["e2e_5m"]["recall_at_100_precision"], 4)
         e = np.array([pose_errors(gt, p) for p in best if p.confidence >= v.min_confidence]).reshape(-1, 3)

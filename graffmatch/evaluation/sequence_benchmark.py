@@ -134,6 +134,17 @@ def _retriever_label(method: str, has_odometry: bool) -> str:
     return "descriptor (no odometry)" if method == "descriptor+radius" and not has_odometry else method
 
 
+def best_predictions(records: dict[int, dict]) -> list[Prediction]:
+    """The protocol's one prediction a query: its most confident verified candidate (the best-ranked on ties)."""
+    preds = []
+    for q, r in records.items():
+        cs = [c for c in r["candidates"] if c["T"] is not None]
+        if cs:
+            best = max(cs, key=lambda c: (c["confidence"], -c["rank"]))
+            preds.append(Prediction(q, best["match"], best["confidence"], np.asarray(best["T"]).reshape(4, 4)))
+    return preds
+
+
 def run_ours(dataset, out_dir: Path, config: LoopDetectorConfig | None = None, workers: int | None = None,
              progress: Callable | None = None, odometry: Array | None = None) -> MethodRun:
     """GraffMatch loops: the most confident verified candidate per query is scored (``odometry``:
@@ -144,13 +155,8 @@ def run_ours(dataset, out_dir: Path, config: LoopDetectorConfig | None = None, w
     cfg = (config or LoopDetectorConfig()).model_copy(deep=True)
     summary = run_loops(dataset, out_dir, cfg, workers=workers, progress=progress, odometry=odometry)
     recs = apply_sequence_consistency(read_queries(out_dir), odometry, cfg.verification)
-    preds, cands = [], {}
-    for q, r in recs.items():
-        cs = [c for c in r["candidates"] if c["T"] is not None]
-        cands[q] = [c["match"] for c in sorted(r["candidates"], key=lambda c: c["rank"])]
-        if cs:
-            best = max(cs, key=lambda c: (c["confidence"], -c["rank"]))
-            preds.append(Prediction(q, best["match"], best["confidence"], np.asarray(best["T"]).reshape(4, 4)))
+    preds = best_predictions(recs)
+    cands = {q: [c["match"] for c in sorted(r["candidates"], key=lambda c: c["rank"])] for q, r in recs.items()}
     return MethodRun(
         "ours (GraffMatch loops)", preds,
         (summary["verify_ms_per_query"] + summary["retrieve_ms_per_query"]) / 1e3,
